@@ -1,0 +1,58 @@
+"""An RGB camera rendered inside JAX by ray casting (`mjx.ray`), one ray per pixel.
+
+Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
+from normals estimated on the depth map and a mild distance falloff. Geom colours are an
+input, so objects can be recoloured per episode without changing the (shared) model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from mujoco import mjx
+
+BACKGROUND = np.array([0.55, 0.62, 0.70])
+LIGHT_DIR = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraConfig:
+    height: int = 64
+    width: int = 64
+    fovy_deg: float = 50.0
+
+
+def pixel_rays(cfg: CameraConfig) -> np.ndarray:
+    """[H, W, 3] unit ray directions in the camera frame (MuJoCo: looks along -z, y up)."""
+    t = np.tan(np.deg2rad(cfg.fovy_deg) / 2)
+    aspect = cfg.width / cfg.height
+    ys = (1 - 2 * (np.arange(cfg.height) + 0.5) / cfg.height) * t
+    xs = (2 * (np.arange(cfg.width) + 0.5) / cfg.width - 1) * t * aspect
+    dirs = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -np.ones((cfg.height, 1))), -1)
+    return (dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def render(m: mjx.Model, d: mjx.Data, cam_id: int, geom_rgb: jnp.ndarray, cfg: CameraConfig) -> jnp.ndarray:
+    """RGB image [H, W, 3] uint8 from camera `cam_id`; `geom_rgb` [ngeom, 3] in [0, 1]."""
+    origin = d.cam_xpos[cam_id]
+    dirs = jnp.asarray(pixel_rays(cfg)) @ d.cam_xmat[cam_id].reshape(3, 3).T  # [H, W, 3] world
+    # Groups 0-2 are visible; the invisible group 3+ (none used now) is skipped.
+    cast = jax.vmap(lambda v: mjx.ray(m, d, origin, v, geomgroup=(1, 1, 1, 0, 0, 0)))
+    dist, gid = cast(dirs.reshape(-1, 3))
+    dist, gid = dist.reshape(cfg.height, cfg.width), gid.reshape(cfg.height, cfg.width)
+    hit = gid >= 0
+    dist = jnp.where(hit, dist, 10.0)
+    pts = origin + dirs * dist[..., None]
+    # Normals from the depth map: cross product of neighbouring surface points.
+    dx = jnp.concatenate([pts[:, 1:] - pts[:, :-1], pts[:, -1:] - pts[:, -2:-1]], 1)
+    dy = jnp.concatenate([pts[1:] - pts[:-1], pts[-1:] - pts[-2:-1]], 0)
+    n = jnp.cross(dx, dy)
+    n = n / (jnp.linalg.norm(n, axis=-1, keepdims=True) + 1e-9)
+    n = jnp.where(jnp.sum(n * dirs, -1, keepdims=True) > 0, -n, n)  # face the camera
+    lambert = jnp.clip(jnp.sum(n * LIGHT_DIR, -1), 0.0, 1.0)
+    shade = (0.45 + 0.55 * lambert) * jnp.clip(1.25 - 0.25 * dist, 0.6, 1.0)
+    rgb = jnp.where(hit[..., None], geom_rgb[jnp.maximum(gid, 0)] * shade[..., None], BACKGROUND)
+    return jnp.round(jnp.clip(rgb, 0.0, 1.0) * 255).astype(jnp.uint8)

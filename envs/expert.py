@@ -1,0 +1,214 @@
+"""Scripted experts: jitted waypoint controllers using privileged object poses, acting in
+the same 7-D action space as the policy.
+
+For each goal in order, a phase machine drives the tool centre point (TCP):
+  pick-and-place (plate, basket, zone, stack, lift):
+    APPROACH above the object, DESCEND, GRASP (close, wait), LIFT, CARRY above the place
+    point, LOWER, RELEASE (open, wait), RETREAT up;   `lift` stops after LIFT and holds.
+  push (push_to_zone):
+    APPROACH above a point behind the object (on the far side from the zone), DESCEND with
+    the jaw closed, PUSH along the object->zone line with lateral correction, RETREAT.
+While carrying, targets are expressed for the object (the TCP target is the object target
+plus the current TCP-object offset), so placement heights are exact whatever the grasp.
+Actions are proportional to the pose error, saturated at the action bounds; optional
+Gaussian action noise (not on the gripper) diversifies demonstrations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from envs import rotations, scene, tasks as tasks_lib
+from envs.env import EnvState, TabletopEnv, goal_status
+
+# Phases.
+APPROACH, DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE = range(9)
+PUSH_APPROACH, PUSH_DESCEND, PUSH, PUSH_RETREAT = range(9, 13)
+PHASE_NAMES = ("approach", "descend", "grasp", "lift", "carry", "lower", "release", "retreat", "done",
+               "push_approach", "push_descend", "push", "push_retreat")
+# Tool orientation pointing down with yaw 0 (TCP x = world x, y = -world y, z = -world z).
+R_DOWN = np.diag([1.0, -1.0, -1.0])
+
+
+@dataclasses.dataclass(frozen=True)
+class ExpertConfig:
+    hover: float = 0.10  # m above the object before descending
+    carry_height: float = 0.19  # TCP height while carrying (clears the basket walls)
+    grasp_steps: int = 5  # control steps with the jaw closing before lifting
+    release_steps: int = 4
+    pos_tol: float = 0.012  # m: waypoint reached
+    fine_tol: float = 0.006  # m: grasp/place waypoint reached
+    gain: float = 1.2  # action per (error / max step)
+    action_noise: float = 0.0  # std of Gaussian noise added to the 6 motion dims
+    push_clearance: float = 0.045  # m from object centre to TCP behind it when pushing
+    push_height: float = 0.022  # TCP height while pushing
+
+
+@struct.dataclass
+class ExpertState:
+    goal: jnp.ndarray  # [] int, current goal index
+    phase: jnp.ndarray  # [] int
+    timer: jnp.ndarray  # [] int, steps spent in the phase
+    yaw: jnp.ndarray  # [] float, TCP yaw held after grasping
+
+
+def init(state: EnvState, env: TabletopEnv) -> ExpertState:
+    kind0 = env.table.goal_kind[state.info.task_id, 0]
+    phase0 = jnp.where(kind0 == tasks_lib.GOAL_KINDS.index("push_to_zone"), PUSH_APPROACH, APPROACH)
+    return ExpertState(goal=jnp.zeros((), jnp.int32), phase=phase0.astype(jnp.int32), timer=jnp.zeros((), jnp.int32),
+                       yaw=jnp.zeros(()))
+
+
+def _tcp_yaw(quat):
+    r = rotations.quat_to_mat(quat)
+    return jnp.arctan2(r[1, 0], r[0, 0])
+
+
+def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg: ExpertConfig = ExpertConfig()):
+    """One expert action [7] and the next expert state. Pure and jittable (vmap for batches)."""
+    tbl, info = env.table, state.info
+    g = jnp.minimum(es.goal, tasks_lib.MAX_GOALS - 1)
+    kind = tbl.goal_kind[info.task_id, g]
+    obj = info.goal_obj[g]
+    support = jnp.maximum(tbl.goal_support[info.task_id, g], 0)
+    pos = env.object_pos(state.data)
+    quat = env.object_quat(state.data)
+    rec = env.receptacle_pos(state.data)
+    half = jnp.asarray(scene.OBJECT_HALF_HEIGHT, jnp.float32)
+    p, h = pos[obj], half[obj]
+    tcp = state.kin.pos
+    is_block = jnp.asarray([s == "block" for s in scene.OBJECT_SHAPES])[obj]
+
+    # Where the object goes (object centre), per goal kind.
+    offset = jnp.concatenate([tbl.goal_offset[info.task_id, g], jnp.zeros(1)])
+    rec_idx = jnp.asarray([0, 1, 2, 2, 0, 0])[jnp.maximum(kind, 0)]
+    place_z = jnp.stack([
+        2 * scene.PLATE_HALF_THICK + h + 0.008,  # on_plate
+        scene.BASKET_WALL_HEIGHT + h + 0.01,  # in_basket: released above the walls
+        h + 0.006,  # in_zone
+        h,  # push_to_zone (unused)
+        pos[support, 2] + half[support] + h + 0.008,  # stack_on
+        h + 0.12,  # lift
+    ])[jnp.maximum(kind, 0)]
+    place_xy = jnp.where(kind == tasks_lib.GOAL_KINDS.index("stack_on"), pos[support, :2], rec[rec_idx, :2] + offset[:2])
+    place = jnp.concatenate([place_xy, place_z[None]])
+
+    # Grasp yaw: blocks are gripped across a pair of faces (yaw mod pi/2), cylinders anyhow.
+    obj_yaw = rotations.quat_yaw(quat[obj])
+    grasp_yaw = jnp.where(is_block, rotations.wrap_angle(obj_yaw, np.pi / 2), 0.0)
+    held = tcp - p  # TCP relative to the object (while it is held)
+
+    # Push geometry: along the object -> zone line.
+    to_zone = rec[2, :2] - p[:2]
+    dist_zone = jnp.linalg.norm(to_zone)
+    u = to_zone / jnp.maximum(dist_zone, 1e-6)
+    behind = p[:2] - u * cfg.push_clearance
+    lateral = jnp.dot(tcp[:2] - p[:2], jnp.array([-u[1], u[0]]))
+    push_xy = p[:2] + u * 0.03 - jnp.array([-u[1], u[0]]) * lateral * 1.5
+
+    hover_z = jnp.maximum(p[2] + cfg.hover, 0.12)
+    phase = es.phase
+    targets = jnp.stack([
+        jnp.concatenate([p[:2], hover_z[None]]),  # APPROACH
+        p + jnp.array([0.0, 0.0, 0.004]),  # DESCEND
+        p + jnp.array([0.0, 0.0, 0.004]),  # GRASP
+        jnp.concatenate([tcp[:2], jnp.array([cfg.carry_height])]),  # LIFT
+        jnp.concatenate([place_xy, jnp.array([cfg.carry_height])]) + held * jnp.array([1, 1, 0]),  # CARRY
+        place + held,  # LOWER
+        tcp,  # RELEASE
+        jnp.concatenate([tcp[:2], jnp.array([cfg.carry_height])]),  # RETREAT
+        tcp,  # DONE
+        jnp.concatenate([behind, jnp.array([0.12])]),  # PUSH_APPROACH
+        jnp.concatenate([behind, jnp.array([cfg.push_height])]),  # PUSH_DESCEND
+        jnp.concatenate([push_xy, jnp.array([cfg.push_height])]),  # PUSH
+        jnp.concatenate([tcp[:2], jnp.array([0.15])]),  # PUSH_RETREAT
+    ])
+    target = targets[phase]
+    closed = jnp.isin(phase, jnp.array([GRASP, LIFT, CARRY, LOWER, PUSH_APPROACH, PUSH_DESCEND, PUSH, PUSH_RETREAT]))
+    pre_grasp = jnp.isin(phase, jnp.array([APPROACH, DESCEND]))
+    cur_yaw = _tcp_yaw(state.kin.quat)
+    yaw = jnp.where(pre_grasp, grasp_yaw, es.yaw)
+
+    err = target - tcp
+    n_err = jnp.linalg.norm(err)
+    r_des = jnp.asarray(rotations.quat_to_mat(rotations.yaw_quat(yaw))) @ R_DOWN
+    r_cur = rotations.quat_to_mat(state.kin.quat)
+    rot_err = rotations.mat_to_rotvec(r_des @ r_cur.T)
+    motion = jnp.concatenate([
+        err / env.config.control.max_pos_step * cfg.gain,
+        rot_err / env.config.control.max_rot_step * cfg.gain,
+    ])
+    motion = motion + cfg.action_noise * jax.random.normal(key, (6,))
+    action = jnp.concatenate([jnp.clip(motion, -1, 1), jnp.where(closed, 1.0, -1.0)[None]])
+
+    # Phase transitions.
+    yaw_ok = jnp.abs(rotations.wrap_angle(cur_yaw - yaw)) < 0.08
+    xy_err = jnp.linalg.norm(err[:2])
+    goal_done = goal_status(env, state.data, info)[g]
+    next_phase = jnp.select(
+        [
+            (phase == APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
+            (phase == DESCEND) & (n_err < cfg.fine_tol),
+            (phase == GRASP) & (es.timer >= cfg.grasp_steps),
+            (phase == LIFT) & (jnp.abs(err[2]) < cfg.pos_tol) & (kind != tasks_lib.GOAL_KINDS.index("lift")),
+            (phase == CARRY) & (xy_err < cfg.pos_tol),
+            (phase == LOWER) & (n_err < cfg.fine_tol),
+            (phase == RELEASE) & (es.timer >= cfg.release_steps),
+            (phase == RETREAT) & (jnp.abs(err[2]) < 0.03),
+            (phase == PUSH_APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
+            (phase == PUSH_DESCEND) & (n_err < cfg.fine_tol),
+            (phase == PUSH) & goal_done & (dist_zone < 0.02),
+            (phase == PUSH_RETREAT) & (jnp.abs(err[2]) < 0.03),
+        ],
+        [DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE, PUSH_DESCEND, PUSH, PUSH_RETREAT, DONE],
+        phase,
+    )
+    # A dropped object (not near the TCP while it should be held) sends the expert back.
+    dropped = jnp.isin(phase, jnp.array([LIFT, CARRY, LOWER])) & (jnp.linalg.norm(held) > 0.05)
+    next_phase = jnp.where(dropped, APPROACH, next_phase)
+    # After DONE, move to the next goal if there is one.
+    next_goal_kind = tbl.goal_kind[info.task_id, jnp.minimum(es.goal + 1, tasks_lib.MAX_GOALS - 1)]
+    advance = (next_phase == DONE) & (es.goal + 1 < tasks_lib.MAX_GOALS) & (next_goal_kind >= 0)
+    first = jnp.where(next_goal_kind == tasks_lib.GOAL_KINDS.index("push_to_zone"), PUSH_APPROACH, APPROACH)
+    new_goal = jnp.where(advance, es.goal + 1, es.goal)
+    next_phase = jnp.where(advance, first, next_phase)
+    changed = next_phase != phase
+    new_es = ExpertState(
+        goal=new_goal.astype(jnp.int32),
+        phase=next_phase.astype(jnp.int32),
+        timer=jnp.where(changed, 0, es.timer + 1).astype(jnp.int32),
+        yaw=jnp.where(pre_grasp, cur_yaw, es.yaw),
+    )
+    return action, new_es
+
+
+def rollout(env: TabletopEnv, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int, cfg: ExpertConfig = ExpertConfig(),
+            record: bool = False):
+    """Runs the expert on a batch of envs for `n_steps` control steps (one lax.scan, vmapped).
+
+    Returns the final EnvState batch and, with `record`, the per-step trajectory:
+    a dict of [n_steps, B, ...] arrays (obs image/proprio, action, ee kinematics, done).
+    """
+    reset_keys, noise_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
+    state = jax.vmap(env.reset)(reset_keys, task_ids)
+    es = jax.vmap(lambda s: init(s, env))(state)
+
+    def body(carry, t):
+        state, es = carry
+        k = jax.vmap(lambda k: jax.random.fold_in(k, t))(noise_keys)
+        action, es = jax.vmap(lambda s, e, kk: act(env, s, e, kk, cfg))(state, es, k)
+        out = None
+        if record:
+            out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, done=state.done,
+                       ee_vel=state.kin.lin_vel, ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc,
+                       gripper_vel=state.kin.gripper_vel)
+        state = jax.vmap(env.step)(state, action)
+        return (state, es), out
+
+    (state, es), traj = jax.lax.scan(body, (state, es), jnp.arange(n_steps))
+    return state, traj
