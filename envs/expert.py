@@ -25,6 +25,7 @@ from flax import struct
 
 from envs import rotations, scene, tasks as tasks_lib
 from envs.env import EnvState, TabletopEnv, goal_status
+from envs.rollout import Policy
 
 # Phases.
 APPROACH, DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE = range(9)
@@ -187,28 +188,7 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     return action, new_es
 
 
-def rollout(env: TabletopEnv, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int, cfg: ExpertConfig = ExpertConfig(),
-            record: bool = False):
-    """Runs the expert on a batch of envs for `n_steps` control steps (one lax.scan, vmapped).
 
-    Returns the final EnvState batch and, with `record`, the per-step trajectory:
-    a dict of [n_steps, B, ...] arrays (obs image/proprio, action, ee kinematics, done).
-    """
-    reset_keys, noise_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
-    state = jax.vmap(env.reset)(reset_keys, task_ids)
-    es = jax.vmap(lambda s: init(s, env))(state)
-
-    def body(carry, t):
-        state, es = carry
-        k = jax.vmap(lambda k: jax.random.fold_in(k, t))(noise_keys)
-        action, es = jax.vmap(lambda s, e, kk: act(env, s, e, kk, cfg))(state, es, k)
-        out = None
-        if record:
-            out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, done=state.done,
-                       ee_vel=state.kin.lin_vel, ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc,
-                       gripper_vel=state.kin.gripper_vel)
-        state = jax.vmap(env.step)(state, action)
-        return (state, es), out
-
-    (state, es), traj = jax.lax.scan(body, (state, es), jnp.arange(n_steps))
-    return state, traj
+def policy(env: TabletopEnv, cfg: ExpertConfig = ExpertConfig()):
+    """The expert as an `envs.rollout.Policy`."""
+    return Policy(name="expert", init=lambda s: init(s, env), act=lambda s, e, k: act(env, s, e, k, cfg))

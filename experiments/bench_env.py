@@ -1,0 +1,123 @@
+"""Environment throughput: the jitted, vmapped MJX env vs a per-env MuJoCo C loop, in one run.
+
+  python -m experiments.bench_env --batch_sizes=1,16,256,1024 --out=results/bench_env.json
+
+The baseline steps one environment at a time with `mujoco.mj_step` on the same MJCF, with
+the same control step (damped-least-squares IK in NumPy, ramped joint targets, 10 physics
+substeps), as LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows
+are timed with and without the ray-cast camera. Compile time is excluded (warm-up call).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flag before JAX starts)
+from envs import robot, scene
+from envs.env import EnvConfig, TabletopEnv
+from envs.ik import ControlConfig
+
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["1", "16", "256", "1024"], "Parallel env counts to time.")
+flags.DEFINE_integer("steps", 20, "Control steps per timed call (one lax.scan).")
+flags.DEFINE_integer("reps", 3, "Timed calls per batch size.")
+flags.DEFINE_integer("c_steps", 300, "Control steps of the MuJoCo C loop.")
+flags.DEFINE_bool("render", True, "Also time the env with the camera.")
+flags.DEFINE_string("out", "", "Optional JSON output path.")
+
+
+def _actions(t):
+    """A smooth exploratory action sequence (same for every env and for the C loop)."""
+    t = jnp.asarray(t, jnp.float32)
+    return jnp.stack([0.5 * jnp.sin(0.2 * t), 0.5 * jnp.cos(0.15 * t), 0.3 * jnp.sin(0.1 * t),
+                      0 * t, 0 * t, 0.2 * jnp.sin(0.3 * t), jnp.sign(jnp.sin(0.05 * t))])
+
+
+def c_loop(n_steps: int) -> float:
+    """Control steps per second of one env in MuJoCo C, one Python loop."""
+    env = TabletopEnv(config=EnvConfig(render=False))
+    m, ids, cfg = env.mj_model, env.ids, ControlConfig()
+    d = mujoco.MjData(m)
+    mujoco.mj_resetData(m, d)
+    s0 = jax.device_get(jax.jit(env.reset)(env.initial_state_keys(0, 0)[0], 0))
+    d.qpos[:], d.mocap_pos[:], d.ctrl[:] = s0.data.qpos, s0.data.mocap_pos, s0.data.ctrl
+    mujoco.mj_forward(m, d)
+    acts = np.asarray(jax.vmap(_actions)(jnp.arange(n_steps)))
+    jp, jr = np.zeros((3, m.nv)), np.zeros((3, m.nv))
+    t0 = time.perf_counter()
+    for a in acts:
+        mujoco.mj_jacSite(m, d, jp, jr, ids.ee_site)
+        jac = np.concatenate([jp, jr])[:, ids.arm_dof]
+        err = np.concatenate([a[:3] * cfg.max_pos_step, a[3:6] * cfg.max_rot_step])
+        dq = jac.T @ np.linalg.solve(jac @ jac.T + cfg.ik_damping**2 * np.eye(6), err)
+        q = d.qpos[ids.arm_qpos]
+        target = np.clip(np.clip(d.ctrl[:7] + dq, q - cfg.max_lead, q + cfg.max_lead), robot.ARM_LOWER, robot.ARM_UPPER)
+        start = d.ctrl[:7].copy()
+        for i in range(scene.N_SUBSTEPS):
+            d.ctrl[:7] = start + (target - start) * (i + 1) / scene.N_SUBSTEPS
+            d.ctrl[7:] = robot.FINGER_OPEN * (1 - a[6]) / 2
+            mujoco.mj_step(m, d)
+    return n_steps / (time.perf_counter() - t0)
+
+
+def mjx_rate(n_envs: int, render: bool) -> tuple[float, float]:
+    """(control steps per second summed over envs, compile seconds)."""
+    env = TabletopEnv(config=EnvConfig(render=render))
+    tids = np.arange(n_envs) % len(env.tasks)
+    state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n_envs) // len(env.tasks)),
+                                         jnp.asarray(tids, jnp.int32))
+    step = jax.vmap(env.step)
+
+    @jax.jit
+    def run(state, t0):
+        def body(s, t):
+            return step(s, jnp.broadcast_to(_actions(t), (n_envs, 7))), None
+        return jax.lax.scan(body, state, t0 + jnp.arange(FLAGS.steps))[0]
+
+    t = time.perf_counter()
+    state = jax.block_until_ready(run(state, 0))
+    compile_s = time.perf_counter() - t
+    # Finished envs freeze: keep them running by clearing `done` (a benchmark, not an episode).
+    state = state.replace(done=jnp.zeros_like(state.done), step=jnp.zeros_like(state.step))
+    t = time.perf_counter()
+    for r in range(FLAGS.reps):
+        state = run(state, (r + 1) * FLAGS.steps)
+    jax.block_until_ready(state)
+    return n_envs * FLAGS.steps * FLAGS.reps / (time.perf_counter() - t), compile_s
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    sizes = [int(b) for b in FLAGS.batch_sizes]
+    if any(b < 1 for b in sizes):
+        raise app.UsageError("--batch_sizes must be positive integers")
+    device = str(jax.devices()[0].device_kind)
+    rows = [{"what": "mujoco_c_loop", "n_envs": 1, "ctrl_steps_per_s": c_loop(FLAGS.c_steps)}]
+    print(json.dumps(rows[-1]), flush=True)
+    for n in sizes:
+        for render in ([False, True] if FLAGS.render else [False]):
+            rate, comp = mjx_rate(n, render)
+            rows.append({"what": "mjx", "render": render, "n_envs": n, "ctrl_steps_per_s": rate, "compile_s": comp})
+            print(json.dumps(rows[-1]), flush=True)
+    base = rows[0]["ctrl_steps_per_s"]
+    print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}")
+    print(f"{'env':<28}{'envs':>6}{'ctrl steps/s':>15}{'x C loop':>10}")
+    for r in rows:
+        name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
+        print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{r['ctrl_steps_per_s'] / base:>10.2f}")
+    if FLAGS.out:
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(FLAGS.out).write_text(json.dumps({"device": device, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    app.run(main)

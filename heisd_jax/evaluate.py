@@ -1,0 +1,91 @@
+"""The batched evaluator: runs a policy on the fixed evaluation initial states of a set of
+tasks, `num_envs` episodes at a time under one jitted rollout, and aggregates success
+rates per task and suite. Progress is handed to a callback after every batch so callers
+can persist results as they complete and resume an interrupted run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs import rollout, tasks as tasks_lib
+from envs.env import TabletopEnv
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    episodes_per_task: int = tasks_lib.N_EVAL_INIT_STATES
+    num_envs: int = 64  # episodes run in parallel
+
+    def __post_init__(self):
+        if not 1 <= self.episodes_per_task <= tasks_lib.N_EVAL_INIT_STATES:
+            raise ValueError(f"episodes_per_task must be in 1..{tasks_lib.N_EVAL_INIT_STATES}, got {self.episodes_per_task}")
+        if self.num_envs < 1:
+            raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+
+
+def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -> list[tuple[int, int]]:
+    """(task index, episode) pairs not yet in `done` (task name -> per-episode results)."""
+    out = []
+    for t, task in enumerate(env.tasks):
+        have = done.get(task.name, [None] * cfg.episodes_per_task)
+        out += [(t, e) for e in range(cfg.episodes_per_task) if e >= len(have) or have[e] is None]
+    return out
+
+
+def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
+             on_batch: Callable[[dict[str, list], dict], None] | None = None) -> dict[str, list]:
+    """Runs every pending episode; returns task name -> per-episode records
+    {"success": bool, "steps": int, "failure": str|None}. `on_batch(results, timing)` is
+    called after every batch with everything so far."""
+    results = {k: list(v) for k, v in (done or {}).items()}
+    todo = pending_episodes(env, cfg, results)
+    max_steps = int(max(t.max_steps for t in env.tasks))
+    run = jax.jit(lambda k, t: rollout.run_episodes(env, policy, k, t, max_steps))
+    for start in range(0, len(todo), cfg.num_envs):
+        chunk = todo[start: start + cfg.num_envs]
+        pad = chunk + [chunk[-1]] * (cfg.num_envs - len(chunk))  # static batch shape
+        tids, eps = np.array(pad).T
+        keys = env.initial_state_keys(tids, eps, split="eval")
+        t0 = time.perf_counter()
+        final = jax.device_get(run(keys, jnp.asarray(tids, jnp.int32)))
+        dt = time.perf_counter() - t0
+        for i, (t, e) in enumerate(chunk):
+            name = env.tasks[t].name
+            rec = results.setdefault(name, [None] * cfg.episodes_per_task)
+            rec += [None] * (cfg.episodes_per_task - len(rec))
+            failure = None
+            if final.invalid_action[i]:
+                failure = "invalid_action"
+            elif final.unstable[i]:
+                failure = "unstable"
+            elif not final.success[i]:
+                failure = "timeout"
+            rec[e] = {"success": bool(final.success[i]), "steps": int(final.step[i]), "failure": failure}
+        if on_batch is not None:
+            on_batch(results, {"batch_seconds": dt, "episodes": len(chunk), "env_steps": int(np.sum(final.step))})
+    return results
+
+
+def summarize(env_tasks: tuple[tasks_lib.Task, ...], results: dict[str, list]) -> dict:
+    """Success rates per task and per suite (over finished episodes)."""
+    per_task, per_suite = {}, {}
+    for task in env_tasks:
+        recs = [r for r in results.get(task.name, []) if r is not None]
+        if not recs:
+            continue
+        sr = float(np.mean([r["success"] for r in recs]))
+        per_task[task.name] = {"suite": task.suite, "episodes": len(recs), "success_rate": sr,
+                               "mean_steps": float(np.mean([r["steps"] for r in recs]))}
+        s = per_suite.setdefault(task.suite, {"episodes": 0, "successes": 0})
+        s["episodes"] += len(recs)
+        s["successes"] += int(sum(r["success"] for r in recs))
+    for s in per_suite.values():
+        s["success_rate"] = s["successes"] / s["episodes"]
+    return {"tasks": per_task, "suites": per_suite}
