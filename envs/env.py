@@ -151,7 +151,8 @@ class TabletopEnv:
             goal_obj, margin_ok = jax.vmap(lambda s, c, o: _select(s, c, o, obj_xy, rec_xy))(
                 tbl.goal_selector[task_id], tbl.goal_candidates[task_id], tbl.goal_obj[task_id]
             )
-            return obj_xy, yaw, rec_xy, goal_obj, jnp.all(margin_ok)
+            clear = jax.vmap(lambda kind, o: _push_path_clear(kind, o, obj_xy, rec_xy[2]))(tbl.goal_kind[task_id], goal_obj)
+            return obj_xy, yaw, rec_xy, goal_obj, jnp.all(margin_ok) & jnp.all(clear)
 
         obj_xy, yaw, rec_xy, goal_obj, ok = jax.vmap(one)(jax.random.split(key, N_LAYOUT_TRIES))
         i = jnp.argmax(ok)  # first valid candidate (0 if none, vanishingly rare)
@@ -242,6 +243,18 @@ def _select(selector, candidates, fixed_obj, obj_xy, rec_xy):
     margin = scores[order[1]] - scores[order[0]]
     is_fixed = selector == 0
     return jnp.where(is_fixed, fixed_obj, order[0]).astype(jnp.int32), is_fixed | (margin >= tasks_lib.SELECTOR_MARGIN)
+
+
+def _push_path_clear(kind, obj, obj_xy, zone_xy):
+    """For a push goal: no other object within PUSH_CORRIDOR of the path from behind the
+    object to the zone (other goals: always clear)."""
+    p = obj_xy[obj]
+    u = (zone_xy - p) / jnp.maximum(jnp.linalg.norm(zone_xy - p), 1e-6)
+    a, b = p - u * 0.08, zone_xy
+    t = jnp.clip(jnp.sum((obj_xy - a) * (b - a), -1) / jnp.sum((b - a) ** 2), 0.0, 1.0)
+    dist = jnp.linalg.norm(obj_xy - (a + t[:, None] * (b - a)), axis=-1)
+    ok = jnp.all((dist >= tasks_lib.PUSH_CORRIDOR) | (jnp.arange(4) == obj))
+    return (kind != tasks_lib.GOAL_KINDS.index("push_to_zone")) | ok
 
 
 def goal_status(env: TabletopEnv, data: mjx.Data, info: EpisodeInfo) -> jnp.ndarray:

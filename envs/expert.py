@@ -48,6 +48,7 @@ class ExpertConfig:
     action_noise: float = 0.0  # std of Gaussian noise added to the 6 motion dims
     push_clearance: float = 0.045  # m from object centre to TCP behind it when pushing
     push_height: float = 0.022  # TCP height while pushing
+    push_speed: float = 0.5  # action bound while pushing (slower than free motion)
 
 
 @struct.dataclass
@@ -68,6 +69,16 @@ def init(state: EnvState, env: TabletopEnv) -> ExpertState:
 def _tcp_yaw(quat):
     r = rotations.quat_to_mat(quat)
     return jnp.arctan2(r[1, 0], r[0, 0])
+
+
+def _hand_clearance(yaw, p, pos, obj):
+    """Smallest separation (m) between the hand's footprint, centred over `p` at `yaw`, and
+    the other objects (negative: overlap)."""
+    f = jnp.stack([jnp.sin(yaw), -jnp.cos(yaw)])  # finger axis (TCP y) in the world xy plane
+    r = pos[:, :2] - p[:2]
+    along, across = jnp.abs(r @ f), jnp.abs(r @ jnp.stack([-f[1], f[0]]))
+    sep = jnp.maximum(along - 0.125, across - 0.055)
+    return jnp.min(jnp.where(jnp.arange(pos.shape[0]) == obj, jnp.inf, sep))
 
 
 def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg: ExpertConfig = ExpertConfig()):
@@ -100,8 +111,13 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     place = jnp.concatenate([place_xy, place_z[None]])
 
     # Grasp yaw: blocks are gripped across a pair of faces (yaw mod pi/2), cylinders anyhow.
+    # Of the two yaws a quarter turn apart, take the one whose long hand (0.19 m along the
+    # finger axis) keeps clear of the other objects.
     obj_yaw = rotations.quat_yaw(quat[obj])
-    grasp_yaw = jnp.where(is_block, rotations.wrap_angle(obj_yaw, np.pi / 2), 0.0)
+    yaw0 = jnp.where(is_block, rotations.wrap_angle(obj_yaw, np.pi / 2), 0.0)
+    yaw1 = jnp.where(yaw0 > 0, yaw0 - np.pi / 2, yaw0 + np.pi / 2)
+    clear0, clear1 = _hand_clearance(yaw0, p, pos, obj), _hand_clearance(yaw1, p, pos, obj)
+    grasp_yaw = jnp.where(clear1 > clear0 + 0.01, yaw1, yaw0)
     held = tcp - p  # TCP relative to the object (while it is held)
 
     # Push geometry: along the object -> zone line.
@@ -110,6 +126,9 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     u = to_zone / jnp.maximum(dist_zone, 1e-6)
     behind = p[:2] - u * cfg.push_clearance
     lateral = jnp.dot(tcp[:2] - p[:2], jnp.array([-u[1], u[0]]))
+    along = jnp.dot(tcp[:2] - p[:2], u)
+    # The pusher slipped off the back of the object: lift and re-approach from behind.
+    lost_contact = (along > -0.02) | (jnp.abs(lateral) > 0.025)
     push_xy = p[:2] + u * 0.03 - jnp.array([-u[1], u[0]]) * lateral * 1.5
 
     hover_z = jnp.maximum(p[2] + cfg.hover, 0.12)
@@ -144,13 +163,15 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
         err / env.config.control.max_pos_step * cfg.gain,
         rot_err / env.config.control.max_rot_step * cfg.gain,
     ])
+    motion = jnp.where(phase == PUSH, jnp.clip(motion, -cfg.push_speed, cfg.push_speed), motion)
     motion = motion + cfg.action_noise * jax.random.normal(key, (6,))
     action = jnp.concatenate([jnp.clip(motion, -1, 1), jnp.where(closed, 1.0, -1.0)[None]])
 
     # Phase transitions.
     yaw_ok = jnp.abs(rotations.wrap_angle(cur_yaw - yaw)) < 0.08
     xy_err = jnp.linalg.norm(err[:2])
-    goal_done = goal_status(env, state.data, info)[g]
+    status = goal_status(env, state.data, info)  # [2]
+    goal_done = status[g]
     next_phase = jnp.select(
         [
             (phase == APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
@@ -164,20 +185,29 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
             (phase == PUSH_APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
             (phase == PUSH_DESCEND) & (n_err < cfg.fine_tol),
             (phase == PUSH) & goal_done & (dist_zone < 0.02),
+            (phase == PUSH) & lost_contact,
             (phase == PUSH_RETREAT) & (jnp.abs(err[2]) < 0.03),
         ],
-        [DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE, PUSH_DESCEND, PUSH, PUSH_RETREAT, DONE],
+        [DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE, PUSH_DESCEND, PUSH, PUSH_RETREAT, PUSH_APPROACH, DONE],
         phase,
     )
     # A dropped object (not near the TCP while it should be held) sends the expert back.
     dropped = jnp.isin(phase, jnp.array([LIFT, CARRY, LOWER])) & (jnp.linalg.norm(held) > 0.05)
     next_phase = jnp.where(dropped, APPROACH, next_phase)
+    # An episode still running in DONE has a goal undone (e.g. a knocked-over stack): redo
+    # the first unsatisfied goal.
+    redo = (phase == DONE) & (es.timer >= 3)
+    redo_goal = jnp.argmin(status).astype(jnp.int32)
+    redo_kind = tbl.goal_kind[info.task_id, redo_goal]
     # After DONE, move to the next goal if there is one.
     next_goal_kind = tbl.goal_kind[info.task_id, jnp.minimum(es.goal + 1, tasks_lib.MAX_GOALS - 1)]
     advance = (next_phase == DONE) & (es.goal + 1 < tasks_lib.MAX_GOALS) & (next_goal_kind >= 0)
     first = jnp.where(next_goal_kind == tasks_lib.GOAL_KINDS.index("push_to_zone"), PUSH_APPROACH, APPROACH)
     new_goal = jnp.where(advance, es.goal + 1, es.goal)
     next_phase = jnp.where(advance, first, next_phase)
+    new_goal = jnp.where(redo, redo_goal, new_goal)
+    next_phase = jnp.where(redo, jnp.where(redo_kind == tasks_lib.GOAL_KINDS.index("push_to_zone"), PUSH_APPROACH, APPROACH),
+                           next_phase)
     changed = next_phase != phase
     new_es = ExpertState(
         goal=new_goal.astype(jnp.int32),

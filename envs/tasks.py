@@ -30,6 +30,7 @@ RECEPTACLE_SLOTS = np.array([[0.40, -0.25], [0.40, 0.25], [0.64, -0.23], [0.64, 
 # Object grid cells (x, y) in the middle of the table; objects take distinct cells, with jitter.
 OBJECT_CELLS = np.array([[x, y] for x in (0.42, 0.52, 0.62) for y in (-0.09, 0.0, 0.09)])
 SLOT_JITTER, CELL_JITTER, SELECTOR_MARGIN = 0.02, 0.015, 0.05
+PUSH_CORRIDOR = 0.06  # m: other objects keep this far from a push path at reset
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,7 +83,7 @@ def _object() -> list[Task]:
             tasks.append(
                 Task(
                     "object",
-                    f"{color}_{shape}_basket",
+                    f"pick_{color}_{shape}",
                     f"pick up the {color} {shape} and place it in the basket",
                     (_g("in_basket", scene.OBJECT_NAMES[slot]),),
                     tuple(colors),
