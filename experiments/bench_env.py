@@ -30,7 +30,7 @@ flags.DEFINE_list("batch_sizes", ["1", "16", "256", "1024"], "Parallel env count
 flags.DEFINE_integer("steps", 20, "Control steps per timed call (one lax.scan).")
 flags.DEFINE_integer("reps", 3, "Timed calls per batch size.")
 flags.DEFINE_integer("c_steps", 300, "Control steps of the MuJoCo C loop.")
-flags.DEFINE_bool("render", True, "Also time the env with the camera.")
+flags.DEFINE_enum("camera", "both", ["both", "on", "off"], "Time the env with the camera, without it, or both.")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
 
 
@@ -104,7 +104,7 @@ def main(argv):
     rows = [{"what": "mujoco_c_loop", "n_envs": 1, "ctrl_steps_per_s": c_loop(FLAGS.c_steps)}]
     print(json.dumps(rows[-1]), flush=True)
     for n in sizes:
-        for render in ([False, True] if FLAGS.render else [False]):
+        for render in {"both": [False, True], "on": [True], "off": [False]}[FLAGS.camera]:
             rate, comp = mjx_rate(n, render)
             rows.append({"what": "mjx", "render": render, "n_envs": n, "ctrl_steps_per_s": rate, "compile_s": comp})
             print(json.dumps(rows[-1]), flush=True)
