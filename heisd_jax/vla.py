@@ -1,0 +1,310 @@
+"""The target VLA, in OpenVLA's mould: a small ViT on the camera image, the instruction as
+text tokens, proprioception as one token, and a Llama-style causal decoder (RMSNorm, rotary
+positions, SwiGLU) emitting the action's 7 tokens from the last 256 vocabulary ids.
+
+Everything is a pure function of (params, cache, inputs):
+    prefill(params, cfg, obs)                     prompt pass -> logits, hidden, cache
+    decode(params, cfg, cache, tokens, intra)     T tokens against the cache (AR: T = 1;
+                                                  tree verification: T nodes + tree mask)
+    commit(cache, src_slots, n)                   keep n of the tokens just decoded
+The KV cache has a static number of slots; each row has its own length and key mask, so
+rows can accept different numbers of tokens. Vocabulary: text ids [0, text_vocab), action
+ids [text_vocab, text_vocab + 256).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs import language
+from heisd_jax.tokenizer import ACTION_DIM, N_BINS
+
+NEG_INF = -1e9
+
+
+@dataclasses.dataclass(frozen=True)
+class VLAConfig:
+    image_size: int = 64
+    patch_size: int = 8
+    vision_layers: int = 2
+    text_len: int = language.MAX_INSTRUCTION_TOKENS
+    text_vocab: int = len(language.VOCAB)
+    proprio_dim: int = 8
+    d_model: int = 256
+    n_layers: int = 8
+    n_heads: int = 8
+    mlp_dim: int = 688
+    cache_slots: int = 160  # prompt + 7 actions + the largest draft tree, with room to spare
+    rope_base: float = 10000.0
+    dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
+
+    @property
+    def n_patches(self) -> int:
+        return (self.image_size // self.patch_size) ** 2
+
+    @property
+    def prompt_len(self) -> int:
+        return self.n_patches + self.text_len + 1
+
+    @property
+    def vocab_size(self) -> int:
+        return self.text_vocab + N_BINS
+
+    @property
+    def first_action_id(self) -> int:
+        return self.text_vocab
+
+    def __post_init__(self):
+        if self.image_size % self.patch_size:
+            raise ValueError(f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}")
+        if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
+            raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
+        if self.cache_slots < self.prompt_len + ACTION_DIM:
+            raise ValueError(f"cache_slots {self.cache_slots} < prompt {self.prompt_len} + {ACTION_DIM} actions")
+
+
+@struct.dataclass
+class KVCache:
+    k: jnp.ndarray  # [L, B, S, H, Dh]
+    v: jnp.ndarray  # [L, B, S, H, Dh]
+    key_mask: jnp.ndarray  # [B, S] bool: slot holds a token later queries may attend to
+    length: jnp.ndarray  # [B] int32: committed tokens (next write slot; also next position)
+
+
+@struct.dataclass
+class Observation:
+    image: jnp.ndarray  # [B, H, W, 3] uint8
+    instruction: jnp.ndarray  # [B, text_len] int32 (envs.language ids, PAD = 0)
+    proprio: jnp.ndarray  # [B, proprio_dim] float32
+
+
+def init_cache(cfg: VLAConfig, batch: int) -> KVCache:
+    shape = (cfg.n_layers, batch, cfg.cache_slots, cfg.n_heads, cfg.d_model // cfg.n_heads)
+    return KVCache(k=jnp.zeros(shape, cfg.dtype), v=jnp.zeros(shape, cfg.dtype),
+                   key_mask=jnp.zeros((batch, cfg.cache_slots), bool), length=jnp.zeros((batch,), jnp.int32))
+
+
+def rope(x: jnp.ndarray, positions: jnp.ndarray, base: float) -> jnp.ndarray:
+    """Rotary embedding. x [B, T, H, Dh], positions [B, T]."""
+    half = x.shape[-1] // 2
+    freq = 1.0 / (base ** (jnp.arange(half, dtype=jnp.float32) / half))
+    ang = positions[..., None].astype(jnp.float32) * freq  # [B, T, half]
+    cos, sin = jnp.cos(ang)[:, :, None], jnp.sin(ang)[:, :, None]
+    x1, x2 = x[..., :half].astype(jnp.float32), x[..., half:].astype(jnp.float32)
+    return jnp.concatenate([x1 * cos - x2 * sin, x1 * sin + x2 * cos], -1).astype(x.dtype)
+
+
+class SwiGLU(nn.Module):
+    hidden: int
+    dtype: str
+
+    @nn.compact
+    def __call__(self, x):
+        g = nn.Dense(self.hidden, use_bias=False, dtype=self.dtype, name="gate")(x)
+        u = nn.Dense(self.hidden, use_bias=False, dtype=self.dtype, name="up")(x)
+        return nn.Dense(x.shape[-1], use_bias=False, dtype=self.dtype, name="down")(nn.silu(g) * u)
+
+
+class DecoderBlock(nn.Module):
+    """Pre-norm causal block writing its keys/values into the cache."""
+
+    cfg: VLAConfig
+
+    @nn.compact
+    def __call__(self, x, layer_k, layer_v, positions, write_slot, mask):
+        # x [B, T, D]; layer_k/v [B, S, H, Dh]; positions [B, T]; write_slot [B]; mask [B, T, S]
+        cfg = self.cfg
+        b, t, d = x.shape
+        hd = d // cfg.n_heads
+        h = nn.RMSNorm(dtype=cfg.dtype, name="attn_norm")(x)
+        qkv = nn.Dense(3 * d, use_bias=False, dtype=cfg.dtype, name="qkv")(h).reshape(b, t, 3, cfg.n_heads, hd)
+        q, k, v = rope(qkv[:, :, 0], positions, cfg.rope_base), rope(qkv[:, :, 1], positions, cfg.rope_base), qkv[:, :, 2]
+        write = jax.vmap(lambda c, new, s: jax.lax.dynamic_update_slice(c, new.astype(c.dtype), (s, 0, 0)))
+        layer_k, layer_v = write(layer_k, k, write_slot), write(layer_v, v, write_slot)
+        logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32) / jnp.sqrt(hd)
+        logits = jnp.where(mask[:, None], logits, NEG_INF)
+        attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
+        out = jnp.einsum("bhts,bshd->bthd", attn, layer_v).reshape(b, t, d)
+        x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out)
+        x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(dtype=cfg.dtype, name="mlp_norm")(x))
+        return x, (layer_k, layer_v)
+
+
+class VisionEncoder(nn.Module):
+    """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, n_patches, D]."""
+
+    cfg: VLAConfig
+
+    @nn.compact
+    def __call__(self, image):
+        cfg = self.cfg
+        x = image.astype(jnp.float32) / 127.5 - 1.0
+        x = nn.Conv(cfg.d_model, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype,
+                    name="patchify")(x)
+        b = x.shape[0]
+        x = x.reshape(b, -1, cfg.d_model)
+        x = x + self.param("pos", nn.initializers.normal(0.02), (1, cfg.n_patches, cfg.d_model)).astype(x.dtype)
+        for i in range(cfg.vision_layers):
+            h = nn.RMSNorm(dtype=cfg.dtype, name=f"norm{i}")(x)
+            x = x + nn.MultiHeadDotProductAttention(cfg.n_heads, dtype=cfg.dtype, name=f"attn{i}")(h, h)
+            x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name=f"mlp{i}")(nn.RMSNorm(dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
+        return nn.RMSNorm(dtype=cfg.dtype, name="out_norm")(x)
+
+
+class VLA(nn.Module):
+    cfg: VLAConfig
+
+    def setup(self):
+        cfg = self.cfg
+        self.vision = VisionEncoder(cfg)
+        self.embed = nn.Embed(cfg.vocab_size, cfg.d_model, dtype=cfg.dtype, embedding_init=nn.initializers.normal(0.02))
+        self.proprio_proj = nn.Dense(cfg.d_model, dtype=cfg.dtype)
+        self.blocks = nn.scan(
+            DecoderBlock, variable_axes={"params": 0}, split_rngs={"params": True},
+            in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
+        )(cfg)
+        self.final_norm = nn.RMSNorm(dtype=cfg.dtype)
+        self.head = nn.Dense(cfg.vocab_size, use_bias=False, dtype=cfg.dtype)
+
+    def prompt_embeddings(self, obs: Observation) -> jnp.ndarray:
+        """[B, prompt_len, D]: visual tokens, instruction tokens, proprio token."""
+        vis = self.vision(obs.image)
+        txt = self.embed(obs.instruction)
+        prop = self.proprio_proj(obs.proprio.astype(jnp.float32))[:, None]
+        return jnp.concatenate([vis, txt, prop], 1)
+
+    def embed_tokens(self, tokens):
+        return self.embed(tokens)
+
+    def run(self, x, cache: KVCache, positions, write_slot, mask):
+        """Decoder over embeddings x [B, T, D]; returns hidden [B, T, D], logits [B, T, V], (k, v)."""
+        x, (k, v) = self.blocks(x, cache.k, cache.v, positions, write_slot, mask)
+        hidden = self.final_norm(x)
+        return hidden, self.head(hidden).astype(jnp.float32), (k, v)
+
+    def __call__(self, obs: Observation, tokens):
+        """Initialisation / teacher forcing entry: prompt + tokens [B, T] -> logits of all."""
+        cache = init_cache(self.cfg, obs.image.shape[0])
+        x = jnp.concatenate([self.prompt_embeddings(obs), self.embed_tokens(tokens)], 1)
+        n = x.shape[1]
+        key_ok = prompt_key_mask(self.cfg, obs.instruction)
+        key_ok = jnp.concatenate([key_ok, jnp.ones(tokens.shape, bool)], 1)
+        mask = causal_mask(n, self.cfg.cache_slots)[None] & _pad_to(key_ok, self.cfg.cache_slots)[:, None, :]
+        positions = jnp.broadcast_to(jnp.arange(n), (x.shape[0], n))
+        hidden, logits, _ = self.run(x, cache, positions, jnp.zeros(x.shape[0], jnp.int32), mask)
+        return logits, hidden
+
+
+def _pad_to(mask, slots):
+    return jnp.pad(mask, ((0, 0), (0, slots - mask.shape[1])))
+
+
+def causal_mask(t: int, slots: int) -> jnp.ndarray:
+    """[T, S]: query i may see slots 0..i (queries written at slots 0..T-1)."""
+    return jnp.arange(slots)[None, :] <= jnp.arange(t)[:, None]
+
+
+def prompt_key_mask(cfg: VLAConfig, instruction: jnp.ndarray) -> jnp.ndarray:
+    """[B, prompt_len] bool: prompt slots that hold real tokens (instruction padding is off)."""
+    b = instruction.shape[0]
+    text_ok = instruction != language.WORD_TO_ID[language.PAD]
+    return jnp.concatenate([jnp.ones((b, cfg.n_patches), bool), text_ok, jnp.ones((b, 1), bool)], 1)
+
+
+def init_params(cfg: VLAConfig, key: jax.Array) -> dict:
+    obs = Observation(image=jnp.zeros((1, cfg.image_size, cfg.image_size, 3), jnp.uint8),
+                      instruction=jnp.zeros((1, cfg.text_len), jnp.int32), proprio=jnp.zeros((1, cfg.proprio_dim)))
+    return VLA(cfg).init(key, obs, jnp.zeros((1, ACTION_DIM), jnp.int32))["params"]
+
+
+def forward(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray):
+    """Teacher-forced pass over prompt + tokens (no cache): logits [B, P+T, V], hidden."""
+    return VLA(cfg).apply({"params": params}, obs, tokens)
+
+
+def prefill(params, cfg: VLAConfig, obs: Observation):
+    """One pass over the prompt into a fresh cache. Returns logits and hidden of the last
+    prompt position ([B, V], [B, D]) and the cache (length = prompt_len)."""
+    model = VLA(cfg)
+    b = obs.image.shape[0]
+    cache = init_cache(cfg, b)
+    key_ok = _pad_to(prompt_key_mask(cfg, obs.instruction), cfg.cache_slots)
+    mask = causal_mask(cfg.prompt_len, cfg.cache_slots)[None] & key_ok[:, None, :]
+    positions = jnp.broadcast_to(jnp.arange(cfg.prompt_len), (b, cfg.prompt_len))
+
+    def fn(m):
+        x = m.prompt_embeddings(obs)
+        return m.run(x, cache, positions, jnp.zeros((b,), jnp.int32), mask)
+
+    hidden, logits, (k, v) = nn.apply(fn, model)({"params": params})
+    cache = KVCache(k=k, v=v, key_mask=key_ok, length=jnp.full((b,), cfg.prompt_len, jnp.int32))
+    return logits[:, -1], hidden[:, -1], cache
+
+
+def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
+    """T tokens [B, T] against the cache, written at slots length..length+T-1 (not committed).
+
+    depth [B, T]: each token's position offset from the cache length (AR: 0; tree: node
+    depth); intra [B, T, T] bool: which of the T new tokens each may attend to (AR: causal;
+    tree: ancestors and itself). Returns logits [B, T, V], hidden [B, T, D] and the cache
+    holding the new keys/values (key_mask and length unchanged until `commit`).
+    """
+    model = VLA(cfg)
+    b, t = tokens.shape
+    slots = jnp.arange(cfg.cache_slots)
+    rel = slots[None, :] - cache.length[:, None]  # [B, S] slot index relative to the block
+    in_block = (rel >= 0) & (rel < t)
+    new_ok = jnp.take_along_axis(intra, jnp.clip(rel, 0, t - 1)[:, None, :].repeat(t, 1), axis=2) & in_block[:, None]
+    mask = (cache.key_mask & (rel < 0))[:, None, :] | new_ok  # [B, T, S]
+    positions = cache.length[:, None] + depth
+
+    def fn(m):
+        return m.run(m.embed_tokens(tokens), cache, positions, cache.length, mask)
+
+    hidden, logits, (k, v) = nn.apply(fn, model)({"params": params})
+    return logits, hidden, cache.replace(k=k, v=v)
+
+
+def commit(cache: KVCache, src: jnp.ndarray, n: jnp.ndarray) -> KVCache:
+    """Keeps n[b] of the tokens last decoded: the ones at block offsets src[b, :n[b]] move to
+    slots length..length+n-1 (in that order); the rest of the block is dropped.
+    src [B, K] int (block offsets, K static), n [B] int <= K."""
+    def move(layer_c, length, s):  # one layer of one row: [S, H, Dh]
+        return jax.lax.dynamic_update_slice(layer_c, layer_c[length + s], (length, 0, 0))
+
+    mv = jax.vmap(jax.vmap(move, in_axes=(0, 0, 0)), in_axes=(0, None, None))  # over layers, then rows
+    k, v = mv(cache.k, cache.length, src), mv(cache.v, cache.length, src)
+    slots = jnp.arange(cache.key_mask.shape[1])
+    new_len = cache.length + n
+    key_mask = (cache.key_mask & (slots[None] < cache.length[:, None])) | (
+        (slots[None] >= cache.length[:, None]) & (slots[None] < new_len[:, None]))
+    return KVCache(k=k, v=v, key_mask=key_mask, length=new_len.astype(jnp.int32))
+
+
+def action_logits(cfg: VLAConfig, logits: jnp.ndarray) -> jnp.ndarray:
+    """Restricts logits [..., V] to the 256 action ids: [..., 256] (index = bin)."""
+    return logits[..., cfg.first_action_id:]
+
+
+def ar_decode(params, cfg: VLAConfig, obs: Observation):
+    """Greedy autoregressive decoding of one action (the `ar` baseline): 1 prefill + 6
+    single-token passes. Returns action token ids [B, 7] and the number of target passes."""
+    logits, _, cache = prefill(params, cfg, obs)
+    first = jnp.argmax(action_logits(cfg, logits), -1) + cfg.first_action_id  # [B]
+    b = first.shape[0]
+    causal1 = jnp.ones((b, 1, 1), bool)
+
+    def step(carry, _):
+        cache, tok = carry
+        lg, _, cache = decode(params, cfg, cache, tok[:, None], jnp.zeros((b, 1), jnp.int32), causal1)
+        cache = commit(cache, jnp.zeros((b, 1), jnp.int32), jnp.ones((b,), jnp.int32))
+        nxt = jnp.argmax(action_logits(cfg, lg[:, 0]), -1) + cfg.first_action_id
+        return (cache, nxt), nxt
+
+    _, rest = jax.lax.scan(step, (cache, first), None, length=ACTION_DIM - 1)
+    return jnp.concatenate([first[:, None], rest.T], 1), ACTION_DIM

@@ -1,0 +1,117 @@
+"""The VLA's KV cache and decoding: cached == uncached, batched == per-example, commit."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import vla
+
+CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
+                    cache_slots=48)
+B = 3
+
+
+def _obs(seed=0, b=B):
+    rng = np.random.default_rng(seed)
+    instr = np.zeros((b, CFG.text_len), np.int32)
+    for i in range(b):  # different instruction lengths: different padding per row
+        n = 4 + 2 * i
+        instr[i, : n + 2] = np.r_[1, rng.integers(4, CFG.text_vocab, n), 2]
+    return vla.Observation(image=jnp.asarray(rng.integers(0, 255, (b, 16, 16, 3)), jnp.uint8),
+                           instruction=jnp.asarray(instr), proprio=jnp.asarray(rng.normal(size=(b, 8)), jnp.float32))
+
+
+@pytest.fixture(scope="module")
+def model():
+    params = vla.init_params(CFG, jax.random.PRNGKey(0))
+    # Sharpen the random model so greedy tokens are not ties.
+    params = jax.tree.map(lambda x: x * 3.0, params)
+    fns = dict(
+        forward=jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t)),
+        prefill=jax.jit(lambda p, o: vla.prefill(p, CFG, o)),
+        decode=jax.jit(lambda p, c, t, d, m: vla.decode(p, CFG, c, t, d, m)),
+        ar=jax.jit(lambda p, o: vla.ar_decode(p, CFG, o)[0]),
+    )
+    return params, fns
+
+
+def test_ar_decoding_with_cache_matches_full_forward_logits(model):
+    params, f = model
+    obs = _obs()
+    toks = f["ar"](params, obs)
+    assert toks.shape == (B, 7)
+    assert np.all((toks >= CFG.first_action_id) & (toks < CFG.vocab_size))
+    full, _ = f["forward"](params, obs, toks)
+    p = CFG.prompt_len
+    # Prefill logits == uncached logits at the last prompt position.
+    lg, _, cache = f["prefill"](params, obs)
+    np.testing.assert_allclose(lg, full[:, p - 1], atol=1e-4)
+    # Each cached single-token decode == uncached logits at that position.
+    for i in range(6):
+        lg, _, cache = f["decode"](params, cache, toks[:, i:i + 1], jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
+        cache = vla.commit(cache, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
+        np.testing.assert_allclose(lg[:, 0], full[:, p + i], atol=1e-4)
+    # Greedy tokens are what the full forward predicts.
+    pred = jnp.argmax(vla.action_logits(CFG, full[:, p - 1:p + 6]), -1) + CFG.first_action_id
+    np.testing.assert_array_equal(pred, toks)
+
+
+def test_batched_decoding_equals_per_example(model):
+    params, f = model
+    obs = _obs(1)
+    toks = f["ar"](params, obs)
+    for i in range(B):
+        one = jax.tree.map(lambda x: jnp.repeat(x[i:i + 1], B, 0), obs)  # same compiled shape
+        np.testing.assert_array_equal(f["ar"](params, one)[0], toks[i])
+
+
+def test_multi_token_block_and_commit_equal_sequential_decoding(model):
+    params, f = model
+    obs = _obs(2)
+    toks = f["ar"](params, obs)
+    full, _ = f["forward"](params, obs, toks)
+    p = CFG.prompt_len
+    _, _, cache = f["prefill"](params, obs)
+    # Decode 3 tokens at once with a causal mask: logits equal the uncached ones.
+    causal = jnp.broadcast_to(jnp.tril(jnp.ones((3, 3), bool)), (B, 3, 3))
+    lg, _, c3 = f["decode"](params, cache, toks[:, :3], jnp.broadcast_to(jnp.arange(3), (B, 3)), causal)
+    np.testing.assert_allclose(lg, full[:, p:p + 3], atol=1e-4)
+    # Rows keep different numbers of them; the next token then sees exactly those.
+    n = jnp.array([1, 2, 3])
+    c = vla.commit(c3, jnp.broadcast_to(jnp.arange(3), (B, 3)), n)
+    np.testing.assert_array_equal(c.length, p + n)
+    nxt = toks[jnp.arange(B), n][:, None]
+    lg, _, _ = f["decode"](params, c, nxt, jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
+    for i in range(B):
+        np.testing.assert_allclose(lg[i, 0], full[i, p + int(n[i])], atol=1e-4)
+
+
+def test_commit_moves_the_chosen_tokens_into_place(model):
+    params, f = model
+    obs = _obs(3)
+    toks = f["ar"](params, obs)
+    _, _, cache = f["prefill"](params, obs)
+    # Decode tokens [t0, x, t1] as a "tree" where node 2 hangs off node 0, keep nodes 0 and 2.
+    junk = jnp.full((B, 1), CFG.first_action_id)
+    block = jnp.concatenate([toks[:, :1], junk, toks[:, 1:2]], 1)
+    depth = jnp.broadcast_to(jnp.array([0, 1, 1]), (B, 3))
+    tree = jnp.broadcast_to(jnp.array([[1, 0, 0], [1, 1, 0], [1, 0, 1]], bool), (B, 3, 3))
+    _, _, c = f["decode"](params, cache, block, depth, tree)
+    c = vla.commit(c, jnp.broadcast_to(jnp.array([0, 2]), (B, 2)), jnp.full((B,), 2))
+    # The cache now equals one that decoded t0, t1 one by one.
+    _, _, ref = f["decode"](params, cache, toks[:, :2], jnp.broadcast_to(jnp.arange(2), (B, 2)),
+                            jnp.broadcast_to(jnp.tril(jnp.ones((2, 2), bool)), (B, 2, 2)))
+    ref = vla.commit(ref, jnp.broadcast_to(jnp.arange(2), (B, 2)), jnp.full((B,), 2))
+    np.testing.assert_array_equal(c.length, ref.length)
+    np.testing.assert_array_equal(c.key_mask, ref.key_mask)
+    live = np.asarray(ref.key_mask)[None, :, :, None, None]
+    np.testing.assert_allclose(np.where(live, c.k, 0), np.where(live, ref.k, 0), atol=1e-5)
+    np.testing.assert_allclose(np.where(live, c.v, 0), np.where(live, ref.v, 0), atol=1e-5)
+
+
+def test_config_rejects_bad_shapes():
+    with pytest.raises(ValueError, match="multiple of patch_size"):
+        vla.VLAConfig(image_size=30, patch_size=8)
+    with pytest.raises(ValueError, match="cache_slots"):
+        vla.VLAConfig(cache_slots=20)
