@@ -1,12 +1,15 @@
-"""Sets XLA_FLAGS for fast MJX on CPU before JAX starts its backends.
+"""Sets XLA_FLAGS for MJX on CPU before JAX starts its backends.
 
-With jaxlib >= 0.7, XLA:CPU's fusion emitters make MJX ~13x slower on CPU;
-`--xla_cpu_use_fusion_emitters=false` restores the speed. Some XLA builds (seen: jaxlib
-0.11.2 with the CUDA 13 plugin) abort on this flag as unknown, although its name still
-appears in their binaries. So whether the flag is accepted is probed once, in a child
-process that starts JAX's backends with it, and the answer is cached per installed
-jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS are kept; an explicit
-setting of this flag is respected.
+* `--xla_cpu_use_fusion_emitters=false`: with jaxlib >= 0.7, XLA:CPU's fusion emitters make
+  MJX ~13x slower on CPU.
+* `--xla_cpu_multi_thread_eigen=false`: XLA:CPU's multi-threaded Eigen pool can wedge
+  (a permanent hang at 0% CPU while fetching a result) on large vmapped MJX rollouts; seen
+  here on 2 cores with jaxlib 0.10.2 at 40 envs, reproducibly.
+Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag they do not
+know, although its name still appears in their binaries. So whether each flag is accepted
+is probed once, in a child process that starts JAX's backends with it, and the answer is
+cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS
+are kept; an explicit setting of either flag is respected.
 """
 
 from __future__ import annotations
@@ -18,8 +21,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-FLAG_NAME = "xla_cpu_use_fusion_emitters"
-FLAG = f"--{FLAG_NAME}=false"
+FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_multi_thread_eigen": "false"}
 _CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "heisd_jax" / "xla_flag.json"
 
 
@@ -41,14 +43,14 @@ def _probe(flags: str) -> bool:
     return r.returncode == 0
 
 
-def flag_supported() -> bool:
-    key = _fingerprint()
+def flag_supported(name: str, value: str) -> bool:
+    key = f"--{name}={value}|{_fingerprint()}"
     try:
         cache = json.loads(_CACHE.read_text())
     except (OSError, ValueError):
         cache = {}
     if key not in cache:
-        cache[key] = _probe(FLAG)
+        cache[key] = _probe(f"--{name}={value}")
         try:
             _CACHE.parent.mkdir(parents=True, exist_ok=True)
             tmp = _CACHE.with_suffix(f".tmp{os.getpid()}")
@@ -60,8 +62,7 @@ def flag_supported() -> bool:
 
 
 def configure() -> None:
-    current = os.environ.get("XLA_FLAGS", "")
-    if FLAG_NAME in current:
-        return
-    if flag_supported():
-        os.environ["XLA_FLAGS"] = (current + " " + FLAG).strip()
+    for name, value in FLAGS.items():
+        current = os.environ.get("XLA_FLAGS", "")
+        if name not in current and flag_supported(name, value):
+            os.environ["XLA_FLAGS"] = (current + f" --{name}={value}").strip()
