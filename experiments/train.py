@@ -1,0 +1,94 @@
+"""Trains the target VLA on collected demonstrations.
+
+  python -m experiments.train --model=vla --demos=data/demos --out=runs/vla --steps=8000
+  python -m experiments.train ... --export=checkpoints/vla     # also write the shippable policy
+
+Training state is checkpointed with orbax under --out/state every --ckpt_every steps; a
+rerun with the same --out resumes from the latest one. Loss and per-dimension token
+accuracy are printed and appended to --out/log.jsonl.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from heisd_jax import checkpoint, data, train, vla
+from heisd_jax.tokenizer import ActionTokenizer
+
+FLAGS = flags.FLAGS
+flags.DEFINE_enum("model", "vla", ["vla"], "What to train (the drafter comes with its issue).")
+flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
+flags.DEFINE_string("out", "runs/vla", "Run directory (training state, log).")
+flags.DEFINE_string("export", "", "If set, write the final parameters as a policy checkpoint here.")
+flags.DEFINE_integer("steps", 8000, "Optimizer steps.")
+flags.DEFINE_integer("batch_size", 256, "Minibatch size.")
+flags.DEFINE_float("lr", 3e-4, "Peak learning rate.")
+flags.DEFINE_integer("warmup_steps", 500, "Linear warm-up steps.")
+flags.DEFINE_float("holdout", 0.05, "Fraction of episodes held out for validation.")
+flags.DEFINE_integer("log_every", 200, "Steps between log lines.")
+flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoints.")
+flags.DEFINE_integer("d_model", 256, "Decoder width.")
+flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
+flags.DEFINE_integer("image_size", 64, "Camera resolution the demos were collected at.")
+flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    out = Path(FLAGS.out)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr, warmup_steps=FLAGS.warmup_steps)
+    model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, patch_size=FLAGS.patch_size, d_model=FLAGS.d_model,
+                              n_layers=FLAGS.n_layers, mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
+    train_eps, val_eps = data.split_episodes(FLAGS.demos, FLAGS.holdout)
+    host = data.load_steps(FLAGS.demos, train_eps)
+    val_host = data.load_steps(FLAGS.demos, val_eps) if val_eps else host
+    if host.image.shape[1] != model_cfg.image_size:
+        raise app.UsageError(f"--image_size={model_cfg.image_size} but the demos hold {host.image.shape[1]}px images")
+    mngr = checkpoint.manager(out / "state")
+    state = train.init_state(model_cfg, cfg)
+    tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
+    if mngr.latest_step() is not None:
+        state, meta = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
+        if meta["config"] != dataclasses.asdict(model_cfg):
+            raise app.UsageError(f"{out} holds a run with another model config; use another --out")
+        tok = ActionTokenizer.from_dict(meta["tokenizer"])
+        print(f"resumed from step {int(state.step)}")
+    n_params = sum(x.size for x in jax.tree.leaves(state.params))
+    print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens; "
+          f"{host.size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out; device {jax.devices()[0]}")
+    table, val_table = jax.device_put(host), jax.device_put(val_host)
+    step_fn = train.make_train_step(model_cfg, cfg, tok)
+    eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size))
+    key = jax.random.PRNGKey(cfg.seed + 1)
+    meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)})
+    t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
+    while int(state.step) < cfg.steps:
+        state, m = step_fn(state, table, key)
+        s = int(state.step)
+        if s % FLAGS.log_every == 0 or s == cfg.steps:
+            vloss, vacc = eval_fn(state.params, val_table, jax.random.fold_in(key, -s))
+            rec = {"step": s, "loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()),
+                   "val_loss": float(vloss), "val_token_acc": [round(float(a), 4) for a in vacc],
+                   "elapsed_s": round(time.perf_counter() - t0, 1)}
+            print(json.dumps(rec), flush=True)
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+        if s % FLAGS.ckpt_every == 0 or s == cfg.steps:
+            checkpoint.save(mngr, s, state, meta)
+    if FLAGS.export:
+        checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok, extra={"train": meta["train"]})
+        print(f"policy checkpoint: {FLAGS.export}")
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,90 @@
+"""Checkpoints (orbax): training state for resumption, and the small policy checkpoints we
+ship in `checkpoints/` (parameters, model config, tokenizer statistics).
+
+Orbax writes each step into a temporary directory and renames it when complete, so a crash
+never corrupts the last good checkpoint. `load_policy` gives one-call loading with errors
+that name the path and the problem.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from envs import language
+from heisd_jax import vla
+from heisd_jax.tokenizer import ActionTokenizer
+
+FORMAT = "heisd-jax-policy-v1"
+
+
+class CheckpointError(ValueError):
+    """A missing, truncated or mismatched checkpoint."""
+
+
+def metadata(model_cfg: vla.VLAConfig, tok: ActionTokenizer, kind: str = "vla", extra: dict | None = None) -> dict:
+    return dict(format=FORMAT, kind=kind, config=dataclasses.asdict(model_cfg), tokenizer=tok.to_dict(),
+                text_vocab=list(language.VOCAB), **(extra or {}))
+
+
+def manager(directory: str | Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(Path(directory).absolute(),
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True))
+
+
+def save(mngr: ocp.CheckpointManager, step: int, tree, meta: dict) -> None:
+    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree), meta=ocp.args.JsonSave(meta)))
+    mngr.wait_until_finished()
+
+
+def restore(mngr: ocp.CheckpointManager, abstract_tree, step: int | None = None):
+    """(tree, meta) of `step` (default: the latest)."""
+    step = mngr.latest_step() if step is None else step
+    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_tree),
+                                                       meta=ocp.args.JsonRestore()))
+    return out["state"], out["meta"]
+
+
+def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionTokenizer, extra: dict | None = None):
+    """Writes a shippable policy checkpoint (parameters only) at `path`."""
+    save(manager(path, max_to_keep=1), 0, params, metadata(model_cfg, tok, extra=extra))
+
+
+def load_policy(path: str | Path):
+    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory."""
+    path = Path(path)
+    if not path.is_dir():
+        raise CheckpointError(f"no checkpoint at {path}: directory does not exist")
+    mngr = manager(path)
+    step = mngr.latest_step()
+    if step is None:
+        raise CheckpointError(f"no complete checkpoint step under {path}")
+    try:
+        meta = mngr.restore(step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"]
+    except Exception as e:  # orbax raises many types for damaged files
+        raise CheckpointError(f"checkpoint {path} (step {step}): cannot read its metadata: {e}") from e
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise CheckpointError(f"checkpoint {path}: format {meta.get('format') if isinstance(meta, dict) else '?'}, "
+                              f"expected {FORMAT}")
+    if meta.get("text_vocab") != list(language.VOCAB):
+        raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary")
+    try:
+        cfg = vla.VLAConfig(**meta["config"])
+        tok = ActionTokenizer.from_dict(meta["tokenizer"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {path}: bad config or tokenizer metadata: {e}") from e
+    abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
+    try:
+        params, _ = restore(mngr, abstract, step)
+    except Exception as e:
+        raise CheckpointError(f"checkpoint {path} (step {step}): parameters missing, truncated or not matching "
+                              f"the config ({type(e).__name__}: {str(e)[:300]})") from e
+    for a, b in zip(jax.tree.leaves(abstract), jax.tree.leaves(params)):
+        if tuple(a.shape) != tuple(np.shape(b)):
+            raise CheckpointError(f"checkpoint {path}: parameter shape {np.shape(b)} does not match config {a.shape}")
+    return params, cfg, tok, meta
+

@@ -1,0 +1,105 @@
+"""VLA training and checkpoints on a tiny synthetic dataset."""
+
+import json
+import shutil
+
+import jax
+import numpy as np
+import pytest
+
+from envs import demos
+from heisd_jax import checkpoint, data, train, vla
+from heisd_jax.tokenizer import ActionTokenizer
+
+CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
+                    cache_slots=48)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """20 episodes whose actions depend on the proprio input (learnable)."""
+    path = tmp_path_factory.mktemp("d") / "demos"
+    rng = np.random.default_rng(0)
+    w = demos.DatasetWriter(path, {"image_size": 16})
+    n_ep, n = 20, 10
+    proprio = rng.normal(size=(n_ep * n, 8)).astype(np.float32)
+    action = np.tanh(proprio[:, :7] * 1.5).astype(np.float32)
+    action[:, 6] = np.sign(action[:, 6])
+    steps = dict(image=rng.integers(0, 255, (n_ep * n, 16, 16, 3), dtype=np.uint8), proprio=proprio, action=action,
+                 ee_vel=np.zeros((n_ep * n, 3), np.float32), ee_ang_vel=np.zeros((n_ep * n, 3), np.float32),
+                 ee_acc=np.zeros((n_ep * n, 3), np.float32), gripper_vel=np.zeros(n_ep * n, np.float32))
+    w.add_shard(steps, [dict(task="lift_blue_cylinder", instruction="pick up the blue cylinder and hold it up",
+                             start=i * n, length=n) for i in range(n_ep)])
+    return w.finalize()
+
+
+def test_a_few_training_steps_lower_the_loss(dataset):
+    table = jax.device_put(data.load_steps(str(dataset)))
+    assert table.size == 200 and table.instruction.shape == (200, CFG.text_len)
+    tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
+    cfg = train.TrainConfig(steps=60, batch_size=32, lr=3e-3, warmup_steps=5)
+    state = train.init_state(CFG, cfg)
+    step = train.make_train_step(CFG, cfg, tok)
+    ev = train.make_eval_fn(CFG, tok, 128)
+    key = jax.random.PRNGKey(0)
+    before, _ = ev(state.params, table, key)
+    for _ in range(cfg.steps):
+        state, m = step(state, table, key)
+    after, acc = ev(state.params, table, key)
+    assert int(state.step) == cfg.steps
+    assert float(after) < float(before) - 0.5, (float(before), float(after))
+    assert acc.shape == (7,)
+
+
+def test_split_is_by_episode_and_disjoint(dataset):
+    tr, va = data.split_episodes(str(dataset), 0.2)
+    assert len(va) == 4 and not set(tr) & set(va) and sorted(tr + va) == list(range(20))
+
+
+@pytest.fixture(scope="module")
+def policy_ckpt(tmp_path_factory):
+    params = vla.init_params(CFG, jax.random.PRNGKey(1))
+    tok = ActionTokenizer((-0.5,) * 6 + (-1.0,), (0.5,) * 6 + (1.0,), CFG.vocab_size)
+    path = tmp_path_factory.mktemp("c") / "vla"
+    checkpoint.save_policy(path, params, CFG, tok)
+    return path, params, tok
+
+
+def test_policy_checkpoint_round_trip(policy_ckpt):
+    path, params, tok = policy_ckpt
+    p2, cfg2, tok2, meta = checkpoint.load_policy(path)
+    assert cfg2 == CFG and tok2 == tok and meta["kind"] == "vla"
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p2)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_missing_checkpoint_names_the_path(tmp_path):
+    with pytest.raises(checkpoint.CheckpointError, match="no checkpoint at .*nowhere"):
+        checkpoint.load_policy(tmp_path / "nowhere")
+
+
+def _copy(src, dst):
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_truncated_checkpoint_is_refused(policy_ckpt, tmp_path):
+    bad = _copy(policy_ckpt[0], tmp_path / "bad")
+    files = [f for f in bad.rglob("*") if f.is_file() and "meta" not in str(f) and f.stat().st_size > 1000]
+    assert files
+    for f in files:
+        f.write_bytes(f.read_bytes()[: f.stat().st_size // 3])
+    with pytest.raises(checkpoint.CheckpointError, match=str(bad.name)):
+        checkpoint.load_policy(bad)
+
+
+def test_mismatched_config_is_refused(policy_ckpt, tmp_path):
+    bad = _copy(policy_ckpt[0], tmp_path / "mismatch")
+    meta_files = [f for f in bad.rglob("metadata") if f.parent.name == "meta"]
+    assert meta_files
+    for f in meta_files:
+        meta = json.loads(f.read_text())
+        meta["config"]["d_model"] = 64
+        f.write_text(json.dumps(meta))
+    with pytest.raises(checkpoint.CheckpointError, match="not matching|does not match"):
+        checkpoint.load_policy(bad)
