@@ -39,6 +39,7 @@ flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution the demos were collected at.")
 flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
+flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
 def main(argv):
@@ -69,22 +70,26 @@ def main(argv):
     table, val_table = jax.device_put(host), jax.device_put(val_host)
     step_fn = train.make_train_step(model_cfg, cfg, tok)
     eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size))
-    key = jax.random.PRNGKey(cfg.seed + 1)
+    key, eval_key = jax.random.PRNGKey(cfg.seed + 1), jax.random.PRNGKey(cfg.seed + 2)
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)})
     t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
     while int(state.step) < cfg.steps:
         state, m = step_fn(state, table, key)
         s = int(state.step)
-        if s % FLAGS.log_every == 0 or s == cfg.steps:
-            vloss, vacc = eval_fn(state.params, val_table, jax.random.fold_in(key, -s))
+        out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
+        if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
+            vloss, vacc = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
             rec = {"step": s, "loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()),
                    "val_loss": float(vloss), "val_token_acc": [round(float(a), 4) for a in vacc],
                    "elapsed_s": round(time.perf_counter() - t0, 1)}
             print(json.dumps(rec), flush=True)
             log.write(json.dumps(rec) + "\n")
             log.flush()
-        if s % FLAGS.ckpt_every == 0 or s == cfg.steps:
+        if s % FLAGS.ckpt_every == 0 or s == cfg.steps or out_of_time:
             checkpoint.save(mngr, s, state, meta)
+        if out_of_time:
+            print(f"time budget spent: stopping at step {s} of {cfg.steps}")
+            break
     if FLAGS.export:
         checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok, extra={"train": meta["train"]})
         print(f"policy checkpoint: {FLAGS.export}")
