@@ -52,9 +52,14 @@ def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jn
     return state
 
 
-def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int):
+def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
+                    exec_noise: float = 0.0):
     """Like run_episodes for exactly `n_steps`, also returning the trajectory: a dict of
-    [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics)."""
+    [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics).
+
+    exec_noise: std of Gaussian noise added to the six motion dimensions of the *executed*
+    action only; the recorded action is the policy's own (noise injection as in DART: more
+    diverse states, clean labels)."""
     state, pstate, act_keys = _start(env, policy, keys, task_ids)
 
     def body(carry, t):
@@ -62,7 +67,10 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
         action, pstate = _act(policy, state, pstate, act_keys, t)
         out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
                    ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel)
-        return (jax.vmap(env.step)(state, action), pstate), out
+        noise_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, t), 1))(act_keys)
+        noise = exec_noise * jax.vmap(lambda k: jax.random.normal(k, (6,)))(noise_keys)
+        executed = action.at[:, :6].set(jnp.clip(action[:, :6] + noise, -1.0, 1.0))
+        return (jax.vmap(env.step)(state, executed), pstate), out
 
     (state, _), traj = jax.lax.scan(body, (state, pstate), jnp.arange(n_steps))
     return state, traj

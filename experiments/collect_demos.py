@@ -27,7 +27,8 @@ flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes_per_task", 50, "Training episodes attempted per task.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution (square).")
-flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise on the expert's motion actions (diversity).")
+flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the executed motion actions (diversity); "
+                   "the recorded labels are the expert's clean actions.")
 flags.DEFINE_integer("first_episode", 0, "Index of the first training initial state (to extend a dataset).")
 flags.DEFINE_string("out", "data/demos", "Output dataset directory.")
 flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (only once the new one is complete).")
@@ -42,17 +43,18 @@ def main(argv):
             raise app.UsageError(f"--{name} must be >= 1")
     cam = camera.CameraConfig(height=FLAGS.image_size, width=FLAGS.image_size)
     env = TabletopEnv(task_list, EnvConfig(camera=cam))
-    policy = expert.policy(env, expert.ExpertConfig(action_noise=FLAGS.action_noise))
+    policy = expert.policy(env)
     meta = dict(
         suites=sorted({t.suite for t in task_list}),
         tasks=[{"name": t.name, "suite": t.suite, "instruction": t.instruction} for t in task_list],
-        image_size=FLAGS.image_size, control_dt=scene.CONTROL_DT, action_noise=FLAGS.action_noise,
+        image_size=FLAGS.image_size, control_dt=scene.CONTROL_DT, executed_action_noise=FLAGS.action_noise,
+        labels="clean expert actions",
         split="train",
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
     pairs = [(t, FLAGS.first_episode + e) for t in range(len(task_list)) for e in range(FLAGS.episodes_per_task)]
     n_steps = int(max(t.max_steps for t in task_list))
-    record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps))
+    record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps, exec_noise=FLAGS.action_noise))
     kept = 0
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),

@@ -20,6 +20,7 @@ from heisd_jax import vla
 from heisd_jax.tokenizer import ActionTokenizer
 
 FORMAT = "heisd-jax-policy-v1"
+DATA_FILE_BYTES = 8 << 20  # OCDBT data files are split at 8 MiB (shipped files stay under 16 MiB)
 
 
 class CheckpointError(ValueError):
@@ -37,15 +38,17 @@ def manager(directory: str | Path, max_to_keep: int = 2) -> ocp.CheckpointManage
 
 
 def save(mngr: ocp.CheckpointManager, step: int, tree, meta: dict) -> None:
-    mngr.save(step, args=ocp.args.Composite(state=ocp.args.StandardSave(tree), meta=ocp.args.JsonSave(meta)))
+    mngr.save(step, args=ocp.args.Composite(
+        state=ocp.args.PyTreeSave(tree, ocdbt_target_data_file_size=DATA_FILE_BYTES), meta=ocp.args.JsonSave(meta)))
     mngr.wait_until_finished()
 
 
 def restore(mngr: ocp.CheckpointManager, abstract_tree, step: int | None = None):
     """(tree, meta) of `step` (default: the latest)."""
     step = mngr.latest_step() if step is None else step
-    out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(abstract_tree),
-                                                       meta=ocp.args.JsonRestore()))
+    restore_args = ocp.checkpoint_utils.construct_restore_args(abstract_tree)
+    out = mngr.restore(step, args=ocp.args.Composite(
+        state=ocp.args.PyTreeRestore(abstract_tree, restore_args=restore_args), meta=ocp.args.JsonRestore()))
     return out["state"], out["meta"]
 
 
