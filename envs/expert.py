@@ -25,7 +25,7 @@ from flax import struct
 
 from envs import rotations, scene, tasks as tasks_lib
 from envs.env import EnvState, TabletopEnv, goal_status
-from envs.rollout import Policy
+from envs.rollout import per_env
 
 # Phases.
 APPROACH, DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE = range(9)
@@ -43,7 +43,9 @@ class ExpertConfig:
     grasp_steps: int = 5  # control steps with the jaw closing before lifting
     release_steps: int = 4
     pos_tol: float = 0.012  # m: waypoint reached
-    fine_tol: float = 0.006  # m: grasp/place waypoint reached
+    fine_tol: float = 0.006  # m: place waypoint reached
+    grasp_z_tol: float = 0.006  # m: grasp height reached ...
+    grasp_xy_tol: float = 0.012  # m: ... within this of the object's axis (then close the jaw)
     gain: float = 1.2  # action per (error / max step)
     action_noise: float = 0.0  # std of Gaussian noise added to the 6 motion dims
     push_clearance: float = 0.045  # m from object centre to TCP behind it when pushing
@@ -175,7 +177,7 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     next_phase = jnp.select(
         [
             (phase == APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
-            (phase == DESCEND) & (n_err < cfg.fine_tol),
+            (phase == DESCEND) & (jnp.abs(err[2]) < cfg.grasp_z_tol) & (xy_err < cfg.grasp_xy_tol),
             (phase == GRASP) & (es.timer >= cfg.grasp_steps),
             (phase == LIFT) & (jnp.abs(err[2]) < cfg.pos_tol) & (kind != tasks_lib.GOAL_KINDS.index("lift")),
             (phase == CARRY) & (xy_err < cfg.pos_tol),
@@ -221,4 +223,4 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
 
 def policy(env: TabletopEnv, cfg: ExpertConfig = ExpertConfig()):
     """The expert as an `envs.rollout.Policy`."""
-    return Policy(name="expert", init=lambda s: init(s, env), act=lambda s, e, k: act(env, s, e, k, cfg))
+    return per_env("expert", lambda s: init(s, env), lambda s, e, k: act(env, s, e, k, cfg))

@@ -1,8 +1,15 @@
-"""Policy-in-the-loop rollouts: one jitted function, control steps under a loop, envs vmapped.
+"""Policy-in-the-loop rollouts: one jitted function, control steps under a loop, envs batched.
 
-A policy is a pair of pure per-env functions, `init(env_state) -> policy_state` and
-`act(env_state, policy_state, key) -> (action [7], policy_state)`; the rollout vmaps them
-with the environment. Finished envs are frozen by the environment itself.
+A policy is a pair of pure *batched* functions over the env batch [B]:
+`init(params, states) -> policy_state` and
+`act(params, states, policy_state, keys) -> (actions [B, 7], policy_state, stats)`,
+where `stats` is a dict of per-env numbers describing this action's decoding (target
+passes, accepted tokens, ...; empty for the expert). The rollout sums them over the steps
+each env was still running. Batched (rather than per-env) so that a decode step can act on
+the whole batch: skip a model call no row needs, gather rows into buckets. `per_env` wraps
+a per-env policy by vmapping it. `params` (model weights, any pytree) travel as an argument
+of the jitted rollout rather than as baked-in constants. Finished envs are frozen by the
+environment itself.
 """
 
 from __future__ import annotations
@@ -15,41 +22,64 @@ import jax.numpy as jnp
 
 from envs.env import EnvState, TabletopEnv
 
+Stats = dict[str, jnp.ndarray]
+
 
 @dataclasses.dataclass(frozen=True)
 class Policy:
     name: str
-    init: Callable[[EnvState], Any]
-    act: Callable[[EnvState, Any, jax.Array], tuple[jnp.ndarray, Any]]
+    init: Callable[[Any, EnvState], Any]
+    act: Callable[[Any, EnvState, Any, jax.Array], tuple[jnp.ndarray, Any, Stats]]
+    params: Any = None
+
+
+def per_env(name: str, init: Callable[[EnvState], Any], act: Callable[[EnvState, Any, jax.Array], tuple]) -> Policy:
+    """A batched Policy from per-env `init(state)` and `act(state, pstate, key) -> (action, pstate)`."""
+    def act_b(params, states, pstate, keys):
+        actions, pstate = jax.vmap(act)(states, pstate, keys)
+        return actions, pstate, {}
+
+    return Policy(name=name, init=lambda params, states: jax.vmap(init)(states), act=act_b)
 
 
 def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray):
     reset_keys, act_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
     state = jax.vmap(env.reset)(reset_keys, task_ids)
-    return state, jax.vmap(policy.init)(state), act_keys
+    return state, policy.init(policy.params, state), act_keys
 
 
 def _act(policy: Policy, state, pstate, act_keys, t):
     k = jax.vmap(lambda k: jax.random.fold_in(k, t))(act_keys)
-    return jax.vmap(policy.act)(state, pstate, k)
+    return policy.act(policy.params, state, pstate, k)
 
 
-def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, max_steps: int) -> EnvState:
-    """Runs a batch of episodes to the end (all done, or `max_steps`); returns final states.
-    `keys` [B, 2] are initial-state keys (see TabletopEnv.initial_state_keys)."""
+def _stats_shape(policy: Policy, state, pstate, act_keys) -> Stats:
+    _, _, stats = jax.eval_shape(lambda: _act(policy, state, pstate, act_keys, 0))
+    return {k: jnp.zeros(v.shape, jnp.float32) for k, v in stats.items()}
+
+
+def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray,
+                 max_steps: int) -> tuple[EnvState, Stats, jnp.ndarray]:
+    """Runs a batch of episodes to the end (all done, or `max_steps`).
+    `keys` [B, 2] are initial-state keys (see TabletopEnv.initial_state_keys). Returns the
+    final states, the policy's decode statistics summed per env over its running steps
+    (dict of [B]), and the number of control steps the batch loop ran."""
     state, pstate, act_keys = _start(env, policy, keys, task_ids)
+    totals = _stats_shape(policy, state, pstate, act_keys)
 
     def cond(c):
-        t, state, _ = c
+        t, state, _, _ = c
         return (t < max_steps) & ~jnp.all(state.done)
 
     def body(c):
-        t, state, pstate = c
-        action, pstate = _act(policy, state, pstate, act_keys, t)
-        return t + 1, jax.vmap(env.step)(state, action), pstate
+        t, state, pstate, totals = c
+        action, pstate, stats = _act(policy, state, pstate, act_keys, t)
+        running = ~state.done
+        totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
+        return t + 1, jax.vmap(env.step)(state, action), pstate, totals
 
-    _, state, _ = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), state, pstate))
-    return state
+    t, state, _, totals = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), state, pstate, totals))
+    return state, totals, t
 
 
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
@@ -64,7 +94,7 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
 
     def body(carry, t):
         state, pstate = carry
-        action, pstate = _act(policy, state, pstate, act_keys, t)
+        action, pstate, _ = _act(policy, state, pstate, act_keys, t)
         out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
                    ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel)
         noise_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, t), 1))(act_keys)

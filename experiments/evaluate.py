@@ -1,11 +1,12 @@
 """Closed-loop batched evaluation on the fixed evaluation initial states.
 
-  python -m experiments.evaluate --method=expert --suites=all --episodes=50 --num_envs=64 \
-      --out=results/eval_expert.json
+  python -m experiments.evaluate --method=ar --suites=all --episodes=50 --num_envs=64 \
+      --out=results/eval_ar.json
 
-Writes per-task and per-suite success rates to --out (JSON) after every batch; rerunning
-the same command resumes where it stopped. A results file written with other settings is
-refused, never overwritten (use another --out).
+Writes per-task and per-suite success rates and per-action decoding statistics (target
+passes per action, wall-clock per batched control step) to --out (JSON) after every batch;
+rerunning the same command resumes where it stopped. A results file written with other
+settings is refused, never overwritten (use another --out).
 """
 
 from __future__ import annotations
@@ -19,7 +20,9 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io
+import jax
+
+from heisd_jax import evaluate as ev, methods, results_io, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -28,6 +31,7 @@ flags.DEFINE_list("tasks", [], "Only these task names (default: every task of th
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the first N of the fixed 50).")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
 
 
 def main(argv):
@@ -36,30 +40,53 @@ def main(argv):
     task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
     cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
     settings = {"method": FLAGS.method, "tasks": [t.name for t in task_list], "episodes_per_task": cfg.episodes_per_task}
+    kwargs = {}
+    if FLAGS.method != "expert":
+        settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
+        kwargs["checkpoint_path"] = FLAGS.checkpoint
     done = results_io.load_resumable(FLAGS.out, settings)
-    env = TabletopEnv(task_list, EnvConfig(render=FLAGS.method != "expert"))
-    policy = methods.make_policy(FLAGS.method, env)
+    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
+    policy = methods.make_policy(FLAGS.method, env, **kwargs)
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")
     t_start = time.perf_counter()
     progress = {"episodes": n_total - n_todo}
+    # Wall-clock of this invocation's batches (a resumed run times only what it ran).
+    timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "batches": 0,
+              "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
-    def on_batch(results, timing):
-        progress["episodes"] += timing["episodes"]
+    def write(results):
         summary = ev.summarize(env.tasks, results)
-        results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary})
+        if timing["control_steps"]:
+            timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / timing["control_steps"]
+            timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
+        results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
+                                                 "timing": timing})
+        return summary
+
+    def on_batch(results, t):
+        progress["episodes"] += t["episodes"]
+        timing["batches"] += 1
+        timing["compile_seconds"] = t["compile_seconds"]
+        for k in ("batch_seconds", "control_steps", "env_steps"):
+            timing[k] += t[k]
+        summary = write(results)
         succ = sum(s["successes"] for s in summary["suites"].values())
         print(f"  {progress['episodes']}/{n_total} episodes, success so far {succ / max(progress['episodes'], 1):.3f}, "
-              f"batch {timing['batch_seconds']:.1f}s ({timing['env_steps'] / timing['batch_seconds']:.0f} env steps/s), "
+              f"batch {t['batch_seconds']:.1f}s ({1e3 * t['batch_seconds'] / max(t['control_steps'], 1):.1f} ms per "
+              f"control step, {t['env_steps'] / t['batch_seconds']:.0f} env steps/s), "
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
     results = ev.evaluate(env, policy, cfg, done, on_batch)
-    summary = ev.summarize(env.tasks, results)
-    results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary})
-    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}")
+    summary = write(results)
+    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'passes/act':>12}")
     for name, s in summary["suites"].items():
-        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}")
+        passes = s.get("target_passes_per_action")
+        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{'-' if passes is None else f'{passes:.2f}':>12}")
+    if timing["control_steps"]:
+        print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
+              f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 

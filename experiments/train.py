@@ -33,6 +33,8 @@ flags.DEFINE_integer("batch_size", 256, "Minibatch size.")
 flags.DEFINE_float("lr", 3e-4, "Peak learning rate.")
 flags.DEFINE_integer("warmup_steps", 500, "Linear warm-up steps.")
 flags.DEFINE_float("holdout", 0.05, "Fraction of episodes held out for validation.")
+flags.DEFINE_float("label_sigma_bins", 0.0, "Ordinal label smoothing: Gaussian targets of this std in bins (0: one-hot).")
+flags.DEFINE_integer("image_shift", 0, "Random-shift image augmentation, pixels (0: off).")
 flags.DEFINE_integer("log_every", 200, "Steps between log lines.")
 flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoints.")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
@@ -47,7 +49,8 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     out = Path(FLAGS.out)
     out.mkdir(parents=True, exist_ok=True)
-    cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr, warmup_steps=FLAGS.warmup_steps)
+    cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr, warmup_steps=FLAGS.warmup_steps,
+                            label_sigma_bins=FLAGS.label_sigma_bins, image_shift=FLAGS.image_shift)
     model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, patch_size=FLAGS.patch_size, d_model=FLAGS.d_model,
                               n_layers=FLAGS.n_layers, mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
     train_eps, val_eps = data.split_episodes(FLAGS.demos, FLAGS.holdout)
@@ -69,7 +72,7 @@ def main(argv):
           f"{host.size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out; device {jax.devices()[0]}")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
     step_fn = train.make_train_step(model_cfg, cfg, tok)
-    eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size))
+    eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
     key, eval_key = jax.random.PRNGKey(cfg.seed + 1), jax.random.PRNGKey(cfg.seed + 2)
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)})
     t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
@@ -78,9 +81,10 @@ def main(argv):
         s = int(state.step)
         out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
         if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
-            vloss, vacc = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
+            vloss, vm = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
             rec = {"step": s, "loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()),
-                   "val_loss": float(vloss), "val_token_acc": [round(float(a), 4) for a in vacc],
+                   "val_loss": float(vloss), "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
+                   "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]],
                    "elapsed_s": round(time.perf_counter() - t0, 1)}
             print(json.dumps(rec), flush=True)
             log.write(json.dumps(rec) + "\n")

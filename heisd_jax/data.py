@@ -54,8 +54,22 @@ def split_episodes(path: str, holdout: float, seed: int = 0) -> tuple[list[int],
     return sorted(order[k:].tolist()), sorted(order[:k].tolist())
 
 
-def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokenizer):
-    """A random minibatch: (vla.Observation, action token ids [B, 7])."""
-    i = jax.random.randint(key, (batch,), 0, table.size)
-    obs = vla.Observation(image=table.image[i], instruction=table.instruction[i], proprio=table.proprio[i])
+def random_shift(images: jnp.ndarray, key: jax.Array, max_shift: int) -> jnp.ndarray:
+    """Each image [B, H, W, C] translated by its own random integer offset in
+    [-max_shift, max_shift]^2, borders replicated (the random-shift augmentation of DrQ)."""
+    if max_shift == 0:
+        return images
+    b, h, w, _ = images.shape
+    padded = jnp.pad(images, ((0, 0), (max_shift, max_shift), (max_shift, max_shift), (0, 0)), mode="edge")
+    offsets = jax.random.randint(key, (b, 2), 0, 2 * max_shift + 1)
+    return jax.vmap(lambda im, o: jax.lax.dynamic_slice(im, (o[0], o[1], 0), (h, w, im.shape[-1])))(padded, offsets)
+
+
+def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokenizer, image_shift: int = 0):
+    """A random minibatch: (vla.Observation, action token ids [B, 7]), images optionally
+    randomly shifted by up to `image_shift` pixels."""
+    k_idx, k_shift = jax.random.split(key)
+    i = jax.random.randint(k_idx, (batch,), 0, table.size)
+    obs = vla.Observation(image=random_shift(table.image[i], k_shift, image_shift), instruction=table.instruction[i],
+                          proprio=table.proprio[i])
     return obs, tok.encode(table.action[i])

@@ -42,19 +42,28 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
              on_batch: Callable[[dict[str, list], dict], None] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
-    {"success": bool, "steps": int, "failure": str|None}. `on_batch(results, timing)` is
-    called after every batch with everything so far."""
+    {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
+    decode totals summed over the episode's actions (e.g. target_passes). `on_batch(results,
+    timing)` is called after every batch with everything so far; timing holds the batch's
+    wall-clock (compilation excluded, reported once as compile_seconds), its control steps
+    (iterations of the batched loop: one batched action each) and env steps."""
     results = {k: list(v) for k, v in (done or {}).items()}
     todo = pending_episodes(env, cfg, results)
     max_steps = int(max(t.max_steps for t in env.tasks))
-    run = jax.jit(lambda k, t: rollout.run_episodes(env, policy, k, t, max_steps))
+    run = jax.jit(lambda params, k, t: rollout.run_episodes(
+        env, dataclasses.replace(policy, params=params), k, t, max_steps))
+    compiled, compile_s = None, 0.0
     for start in range(0, len(todo), cfg.num_envs):
         chunk = todo[start: start + cfg.num_envs]
         pad = chunk + [chunk[-1]] * (cfg.num_envs - len(chunk))  # static batch shape
         tids, eps = np.array(pad).T
-        keys = env.initial_state_keys(tids, eps, split="eval")
+        args = (policy.params, env.initial_state_keys(tids, eps, split="eval"), jnp.asarray(tids, jnp.int32))
+        if compiled is None:  # ahead of time, so batch timings exclude compilation
+            t0 = time.perf_counter()
+            compiled = run.lower(*args).compile()
+            compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        final = jax.device_get(run(keys, jnp.asarray(tids, jnp.int32)))
+        final, totals, loop_steps = jax.device_get(compiled(*args))
         dt = time.perf_counter() - t0
         for i, (t, e) in enumerate(chunk):
             name = env.tasks[t].name
@@ -67,14 +76,31 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
                 failure = "unstable"
             elif not final.success[i]:
                 failure = "timeout"
-            rec[e] = {"success": bool(final.success[i]), "steps": int(final.step[i]), "failure": failure}
+            rec[e] = {"success": bool(final.success[i]), "steps": int(final.step[i]), "failure": failure,
+                      "decode": {k: float(v[i]) for k, v in totals.items()}}
         if on_batch is not None:
-            on_batch(results, {"batch_seconds": dt, "episodes": len(chunk), "env_steps": int(np.sum(final.step))})
+            on_batch(results, {"batch_seconds": dt, "compile_seconds": compile_s, "episodes": len(chunk),
+                               "control_steps": int(loop_steps),
+                               "env_steps": int(np.sum(final.step[:len(chunk)]))})
     return results
 
 
+def _decode_means(recs: list[dict]) -> dict:
+    """Per-action decoding statistics of a set of episodes: every decode total divided by
+    the number of actions taken (e.g. target passes per action)."""
+    actions = sum(r["steps"] for r in recs)
+    keys = set().union(*(r.get("decode", {}) for r in recs))
+    out = {f"{k}_per_action": sum(r.get("decode", {}).get(k, 0.0) for r in recs) / max(actions, 1)
+           for k in sorted(keys)}
+    if "tokens" in keys and "target_passes" in keys:  # acceptance length: tokens per target pass
+        passes = sum(r["decode"].get("target_passes", 0.0) for r in recs)
+        out["tokens_per_target_pass"] = sum(r["decode"].get("tokens", 0.0) for r in recs) / max(passes, 1e-9)
+    return out
+
+
 def summarize(env_tasks: tuple[tasks_lib.Task, ...], results: dict[str, list]) -> dict:
-    """Success rates per task and per suite (over finished episodes)."""
+    """Success rates and per-action decoding statistics per task and per suite (over
+    finished episodes)."""
     per_task, per_suite = {}, {}
     for task in env_tasks:
         recs = [r for r in results.get(task.name, []) if r is not None]
@@ -82,10 +108,11 @@ def summarize(env_tasks: tuple[tasks_lib.Task, ...], results: dict[str, list]) -
             continue
         sr = float(np.mean([r["success"] for r in recs]))
         per_task[task.name] = {"suite": task.suite, "episodes": len(recs), "success_rate": sr,
-                               "mean_steps": float(np.mean([r["steps"] for r in recs]))}
-        s = per_suite.setdefault(task.suite, {"episodes": 0, "successes": 0})
-        s["episodes"] += len(recs)
-        s["successes"] += int(sum(r["success"] for r in recs))
-    for s in per_suite.values():
-        s["success_rate"] = s["successes"] / s["episodes"]
-    return {"tasks": per_task, "suites": per_suite}
+                               "mean_steps": float(np.mean([r["steps"] for r in recs])), **_decode_means(recs)}
+        per_suite.setdefault(task.suite, []).extend(recs)
+    suites = {}
+    for name, recs in per_suite.items():
+        n_succ = int(sum(r["success"] for r in recs))
+        suites[name] = {"episodes": len(recs), "successes": n_succ, "success_rate": n_succ / len(recs),
+                        **_decode_means(recs)}
+    return {"tasks": per_task, "suites": suites}

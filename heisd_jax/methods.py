@@ -1,20 +1,36 @@
 """Decoding methods registered by name, so the evaluator and sweeps can say --method=NAME.
 
-Each entry builds an `envs.rollout.Policy` for an environment. Only the scripted expert
-exists so far; the VLA decoding methods (ar, drafter, retrieval, heisd) register here.
+Each entry builds an `envs.rollout.Policy` for an environment: the scripted expert (an
+upper bound, no model) or a VLA decoding method over a policy checkpoint. The speculative
+methods (drafter, retrieval, heisd) register here as they land.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable
 
 from envs import expert
 from envs.env import TabletopEnv
 from envs.rollout import Policy
+from heisd_jax import checkpoint, vla_policy
+
+
+def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]:
+    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT) -> Policy:
+        params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
+        if cfg.image_size != env.config.camera.width or cfg.image_size != env.config.camera.height:
+            raise ValueError(f"checkpoint {checkpoint_path} expects {cfg.image_size}px images, the env renders "
+                             f"{env.config.camera.width}x{env.config.camera.height}")
+        return vla_policy.decoding_policy(name, params, cfg, tok, decode)
+    return make
+
 
 METHODS: dict[str, Callable[..., Policy]] = {
     "expert": lambda env, **kw: expert.policy(env, expert.ExpertConfig(**kw)),
+    "ar": _vla_method("ar", vla_policy.ar),
 }
+USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
 
 
 def make_policy(name: str, env: TabletopEnv, **settings) -> Policy:

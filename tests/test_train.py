@@ -4,6 +4,7 @@ import json
 import shutil
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -45,10 +46,22 @@ def test_a_few_training_steps_lower_the_loss(dataset):
     before, _ = ev(state.params, table, key)
     for _ in range(cfg.steps):
         state, m = step(state, table, key)
-    after, acc = ev(state.params, table, key)
+    after, metrics = ev(state.params, table, key)
     assert int(state.step) == cfg.steps
     assert float(after) < float(before) - 0.5, (float(before), float(after))
-    assert acc.shape == (7,)
+    assert metrics["token_acc"].shape == metrics["bin_err"].shape == (7,)
+
+
+def test_soft_bin_targets_are_distributions_with_the_label_as_mode():
+    bins = jnp.array([[0, 17, 255]])
+    hard = train.soft_bin_targets(bins, 256, 0.0)
+    np.testing.assert_array_equal(np.asarray(hard), np.asarray(jax.nn.one_hot(bins, 256)))
+    soft = np.asarray(train.soft_bin_targets(bins, 256, 2.0))
+    np.testing.assert_allclose(soft.sum(-1), 1.0, rtol=1e-6)
+    np.testing.assert_array_equal(soft.argmax(-1), np.asarray(bins))
+    assert soft[0, 1, 16] == soft[0, 1, 18] > soft[0, 1, 19] > 0  # symmetric, decaying
+    with pytest.raises(ValueError, match="label_sigma_bins"):
+        train.TrainConfig(label_sigma_bins=-1.0)
 
 
 def test_split_is_by_episode_and_disjoint(dataset):

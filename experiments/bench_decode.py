@@ -1,0 +1,95 @@
+"""Decoding cost of the target VLA, per batch size, in one run: the AR baseline every
+speculative method is compared against.
+
+  python -m experiments.bench_decode --batch_sizes=1,16,256 --out=results/bench_decode.json
+
+Per batch size B, with the shipped checkpoint's parameters and random observations, it times
+(compiled once, warm-up excluded, `block_until_ready`, median of --reps timed calls):
+  prefill      one pass over the prompt (vision encoder + visual/text/proprio tokens) -> first token
+  decode1      one cached single-token pass (AR does 6 of these after the prefill)
+  ar_action    the whole greedy AR decode of one action (prefill + 6 decode passes, one jitted call)
+and reports AR latency per action, AR actions per second (B / ar_action), and the share of
+the prefill: AR / prefill is the ceiling of any speculative method, since every action
+needs at least one target pass over a new image.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flag before JAX starts)
+from heisd_jax import checkpoint, vla, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["1", "16", "256"], "Batch sizes (rows decoded together).")
+flags.DEFINE_integer("reps", 30, "Timed calls per measurement (the median is reported).")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint.")
+flags.DEFINE_enum("dtype", "", ["", "float32", "bfloat16"], "Compute dtype override (default: the checkpoint's).")
+flags.DEFINE_string("out", "", "Optional JSON output path.")
+
+
+def median_seconds(fn, reps: int) -> float:
+    jax.block_until_ready(fn())  # compile + warm-up
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def random_observation(cfg: vla.VLAConfig, batch: int, seed: int = 0) -> vla.Observation:
+    rng = np.random.default_rng(seed)
+    return vla.Observation(
+        image=jnp.asarray(rng.integers(0, 256, (batch, cfg.image_size, cfg.image_size, 3), np.uint8)),
+        instruction=jnp.asarray(rng.integers(1, cfg.text_vocab, (batch, cfg.text_len)), jnp.int32),
+        proprio=jnp.asarray(rng.normal(size=(batch, cfg.proprio_dim)), jnp.float32))
+
+
+def bench(params, cfg: vla.VLAConfig, batch: int, reps: int) -> dict:
+    obs = random_observation(cfg, batch)
+    prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
+    _, _, cache = prefill(params, obs)
+    tok = jnp.full((batch, 1), cfg.first_action_id, jnp.int32)
+    decode1 = jax.jit(lambda p, c, t: vla.decode(p, cfg, c, t, jnp.zeros((batch, 1), jnp.int32),
+                                                 jnp.ones((batch, 1, 1), bool))[0])
+    ar = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    t = {"prefill": median_seconds(lambda: prefill(params, obs)[0], reps),
+         "decode1": median_seconds(lambda: decode1(params, cache, tok), reps),
+         "ar_action": median_seconds(lambda: ar(params, obs), reps)}
+    return {"batch": batch, "ms": {k: round(v * 1e3, 4) for k, v in t.items()},
+            "ar_actions_per_s": batch / t["ar_action"], "prefill_share_of_ar": t["prefill"] / t["ar_action"],
+            "speculation_ceiling": t["ar_action"] / t["prefill"]}
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    if FLAGS.dtype:
+        cfg = vla.VLAConfig(**{**cfg.__dict__, "dtype": FLAGS.dtype})
+    device = jax.devices()[0]
+    print(f"target VLA {sum(x.size for x in jax.tree.leaves(params)) / 1e6:.2f}M params, {cfg.n_layers} layers, "
+          f"prompt {cfg.prompt_len} tokens, {cfg.dtype}, on {device.device_kind}")
+    rows = []
+    for b in (int(x) for x in FLAGS.batch_sizes):
+        r = bench(params, cfg, b, FLAGS.reps)
+        rows.append(r)
+        print(f"B={b:<5} prefill {r['ms']['prefill']:8.3f} ms  decode1 {r['ms']['decode1']:8.3f} ms  "
+              f"AR/action {r['ms']['ar_action']:8.3f} ms  ({r['ar_actions_per_s']:9.0f} actions/s)  "
+              f"prefill share {r['prefill_share_of_ar']:.2f}  ceiling {r['speculation_ceiling']:.2f}x", flush=True)
+    if FLAGS.out:
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        with open(FLAGS.out, "w") as f:
+            json.dump({"device": device.device_kind, "dtype": cfg.dtype, "jax": jax.__version__, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    app.run(main)

@@ -1,0 +1,45 @@
+"""VLA decoding methods as batched rollout policies (`envs.rollout.Policy`).
+
+A decoding method is a pure function `decode(params, cfg, obs) -> (tokens [B, 7], stats)`
+over a batch of observations; `stats` holds per-row numbers for this action (at least
+`target_passes`). `decoding_policy` turns one into a policy: observation from the env
+state, decode, detokenize. The checkpoint's parameters ride in `Policy.params`, so the
+jitted rollout takes them as an argument.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable
+
+import jax.numpy as jnp
+
+from envs.env import EnvState
+from envs.rollout import Policy, Stats
+from heisd_jax import vla
+from heisd_jax.tokenizer import ActionTokenizer
+
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
+
+DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, Stats]]
+
+
+def observation(states: EnvState) -> vla.Observation:
+    """The VLA's inputs from a batch of env states."""
+    return vla.Observation(image=states.obs.image, instruction=states.obs.instruction, proprio=states.obs.proprio)
+
+
+def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn) -> Policy:
+    def act(params, states, pstate, keys):
+        tokens, stats = decode(params, cfg, observation(states))
+        return tok.decode(tokens), pstate, stats
+
+    return Policy(name=name, init=lambda params, states: (), act=act, params=params)
+
+
+def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, Stats]:
+    """Greedy autoregressive decoding (the baseline): 7 target passes per action."""
+    tokens, passes = vla.ar_decode(params, cfg, obs)
+    b = tokens.shape[0]
+    return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
+                    "tokens": jnp.full((b,), vla.ACTION_DIM, jnp.float32)}
