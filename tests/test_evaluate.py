@@ -1,0 +1,81 @@
+"""The batched evaluator with a VLA decoding method, end to end, and the shipped checkpoint."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from heisd_jax import checkpoint, methods, vla, vla_policy
+from heisd_jax.tokenizer import ActionTokenizer
+
+# Tiny, but at the env camera's 64 px so it plugs into the real evaluator.
+CFG = vla.VLAConfig(image_size=64, patch_size=16, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
+                    cache_slots=48)
+TASKS = "left_block_plate,pick_red_block"
+
+
+@pytest.fixture(scope="module")
+def tiny_ckpt(tmp_path_factory):
+    path = tmp_path_factory.mktemp("ar") / "vla"
+    tok = ActionTokenizer((-1.0,) * 7, (1.0,) * 7, CFG.vocab_size)
+    checkpoint.save_policy(path, vla.init_params(CFG, jax.random.PRNGKey(3)), CFG, tok)
+    return path
+
+
+def _run_main(argv):
+    from experiments import evaluate as entry
+    entry.FLAGS(["evaluate", *argv])
+    entry.main([])
+
+
+def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, tmp_path, capsys):
+    out = tmp_path / "ar.json"
+    argv = ["--method=ar", f"--checkpoint={tiny_ckpt}", f"--tasks={TASKS}", "--suites=all", "--episodes=1",
+            "--num_envs=2", f"--out={out}"]
+    _run_main(argv)
+    res = json.loads(out.read_text())
+    assert res["settings"]["method"] == "ar" and res["settings"]["tasks"] == TASKS.split(",")
+    for task in TASKS.split(","):
+        (ep,) = res["episodes"][task]
+        assert isinstance(ep["success"], bool) and ep["steps"] > 0
+        # AR: one prefill + 6 cached passes for every action taken, 7 tokens each.
+        assert ep["decode"] == {"target_passes": 7.0 * ep["steps"], "tokens": 7.0 * ep["steps"]}
+    for suite in ("spatial", "object"):
+        s = res["summary"]["suites"][suite]
+        assert s["episodes"] == 1 and 0.0 <= s["success_rate"] <= 1.0
+        assert s["target_passes_per_action"] == 7.0 and s["tokens_per_target_pass"] == 1.0
+    assert res["timing"]["control_steps"] > 0 and res["timing"]["ms_per_control_step"] > 0
+    before = out.read_text()
+    capsys.readouterr()
+    _run_main(argv)  # same settings: nothing left to run, the file keeps its episodes
+    assert "0 to run" in capsys.readouterr().out
+    assert json.loads(out.read_text())["episodes"] == json.loads(before)["episodes"]
+
+
+def test_unknown_method_lists_the_valid_ones():
+    with pytest.raises(ValueError, match="valid methods: ar, expert"):
+        methods.make_policy("nope", None)
+
+
+def test_shipped_checkpoint_loads_in_one_call_and_fits_the_size_limits():
+    params, cfg, tok, meta = checkpoint.load_policy(vla_policy.DEFAULT_CHECKPOINT)
+    n = sum(x.size for x in jax.tree.leaves(params))
+    assert 5e6 <= n <= 10e6 and cfg.n_layers >= 8 and cfg.image_size == 64
+    assert all(lo < hi for lo, hi in zip(tok.q01, tok.q99))
+    files = [f for f in vla_policy.DEFAULT_CHECKPOINT.parent.rglob("*") if f.is_file()]
+    assert max(f.stat().st_size for f in files) <= 16 << 20
+    assert sum(f.stat().st_size for f in files) < 48 << 20
+
+
+def test_ar_policy_acts_on_a_batch_like_ar_decode(tiny_ckpt, compiled):
+    """The policy's action equals detokenized ar_decode of the same observations."""
+    params, cfg, tok, _ = checkpoint.load_policy(tiny_ckpt)
+    pol = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
+    state = compiled.start([0, 11])
+    state = state.replace(obs=state.obs.replace(image=jax.random.randint(
+        jax.random.PRNGKey(0), (2, 64, 64, 3), 0, 255).astype(np.uint8)))
+    action, _, stats = pol.act(pol.params, state, (), None)
+    tokens, _ = vla.ar_decode(params, cfg, vla_policy.observation(state))
+    np.testing.assert_allclose(np.asarray(action), np.asarray(tok.decode(tokens)), rtol=1e-6)
+    assert action.shape == (2, 7) and np.all(np.asarray(stats["target_passes"]) == 7)
