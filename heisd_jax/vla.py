@@ -230,6 +230,14 @@ def forward(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray):
 def prefill(params, cfg: VLAConfig, obs: Observation):
     """One pass over the prompt into a fresh cache. Returns logits and hidden of the last
     prompt position ([B, V], [B, D]) and the cache (length = prompt_len)."""
+    logits, hidden, _, cache = prefill_features(params, cfg, obs)
+    return logits, hidden[:, -1], cache
+
+
+def prefill_features(params, cfg: VLAConfig, obs: Observation):
+    """Like `prefill`, also returning what a feature-level drafter reads: the last-layer
+    hidden states of every prompt position [B, P, D] and the prompt's input embeddings
+    [B, P, D]. Returns (last logits [B, V], hidden [B, P, D], embeddings, cache)."""
     model = VLA(cfg)
     b = obs.image.shape[0]
     cache = init_cache(cfg, b)
@@ -239,11 +247,11 @@ def prefill(params, cfg: VLAConfig, obs: Observation):
 
     def fn(m):
         x = m.prompt_embeddings(obs)
-        return m.run(x, cache, positions, jnp.zeros((b,), jnp.int32), mask)
+        return x, m.run(x, cache, positions, jnp.zeros((b,), jnp.int32), mask)
 
-    hidden, logits, (k, v) = nn.apply(fn, model)({"params": params})
+    x, (hidden, logits, (k, v)) = nn.apply(fn, model)({"params": params})
     cache = KVCache(k=k, v=v, key_mask=key_ok, length=jnp.full((b,), cfg.prompt_len, jnp.int32))
-    return logits[:, -1], hidden[:, -1], cache
+    return logits[:, -1], hidden, x, cache
 
 
 def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
@@ -284,6 +292,16 @@ def commit(cache: KVCache, src: jnp.ndarray, n: jnp.ndarray) -> KVCache:
     key_mask = (cache.key_mask & (slots[None] < cache.length[:, None])) | (
         (slots[None] >= cache.length[:, None]) & (slots[None] < new_len[:, None]))
     return KVCache(k=k, v=v, key_mask=key_mask, length=new_len.astype(jnp.int32))
+
+
+def embed_tokens(params, tokens: jnp.ndarray) -> jnp.ndarray:
+    """The target's token embeddings (a drafter reuses them, frozen)."""
+    return params["embed"]["embedding"][tokens]
+
+
+def action_head(params, cfg: VLAConfig, hidden: jnp.ndarray) -> jnp.ndarray:
+    """The target's output head restricted to the 256 action ids: hidden [..., D] -> [..., 256]."""
+    return (hidden @ params["head"]["kernel"][:, cfg.first_action_id:].astype(hidden.dtype)).astype(jnp.float32)
 
 
 def action_logits(cfg: VLAConfig, logits: jnp.ndarray) -> jnp.ndarray:

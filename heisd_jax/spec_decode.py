@@ -1,0 +1,262 @@
+"""Drafter-based speculative decoding of one action (Spec-VLA / EAGLE-2), batched and jitted.
+
+Per row: the target's prefill gives the first action token (the *root*); then rounds of
+  1. draft: an EAGLE-2 dynamic tree of `depth` levels; each level keeps the `top_k` nodes
+     of highest cumulative log-probability among the children of the previous level's nodes
+     (one drafter pass per level over its k nodes, with a tree attention mask); the
+     `total_tokens` best nodes of the whole tree (by cumulative log-probability, which keeps
+     every chosen node's ancestors) are verified;
+  2. verify: one target pass over [root, chosen nodes] with an ancestor-only mask and
+     position = cache length + node depth; each node is accepted if its token passes the
+     acceptance rule against the target's greedy token at its parent; the deepest node whose
+     whole path is accepted wins; its path is emitted plus one bonus token (the target's
+     greedy token after it), and root + path are committed to the KV cache;
+  3. the drafter reads the target's hidden states of the committed tokens (its own cache
+     grows with them) and predicts the feature at the bonus token, the next root;
+until 7 tokens exist. Every row has its own tree, acceptance and cache length; shapes are
+static; rows that have their 7 tokens are masked (their state no longer changes) and the
+loop (`lax.while_loop`) ends when all rows are done.
+
+Acceptance rules: `strict` (draft == target greedy: lossless, the output equals greedy AR
+decoding token for token) and `token_relaxed` (|bin(draft) - bin(greedy)| <= relax_bins,
+the draft token is kept; Spec-VLA).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+
+from heisd_jax import drafter, vla
+from heisd_jax.tokenizer import ACTION_DIM, N_BINS
+
+ACCEPTANCE = ("strict", "token_relaxed")
+
+
+@dataclasses.dataclass(frozen=True)
+class SpecConfig:
+    top_k: int = 8
+    depth: int = 4
+    total_tokens: int = 32  # nodes verified per round (<= top_k * depth)
+    acceptance: str = "strict"
+    relax_bins: int = 0
+
+    def __post_init__(self):
+        if self.acceptance not in ACCEPTANCE:
+            raise ValueError(f"unknown acceptance {self.acceptance!r}; valid: {', '.join(ACCEPTANCE)}")
+        if not 1 <= self.top_k <= N_BINS or self.depth < 1:
+            raise ValueError(f"top_k must be in 1..{N_BINS} and depth >= 1, got top_k={self.top_k} depth={self.depth}")
+        if not 1 <= self.total_tokens <= self.top_k * self.depth:
+            raise ValueError(f"total_tokens must be in 1..top_k*depth={self.top_k * self.depth}, got {self.total_tokens}")
+        if not 0 <= self.relax_bins < N_BINS:
+            raise ValueError(f"relax_bins must be in 0..{N_BINS - 1}, got {self.relax_bins}")
+        if self.acceptance == "strict" and self.relax_bins:
+            raise ValueError("relax_bins is only used with acceptance='token_relaxed'")
+
+    def check_fits(self, cfg: vla.VLAConfig):
+        need = cfg.prompt_len + ACTION_DIM + 1 + max(self.total_tokens, self.top_k * self.depth)
+        if need > cfg.cache_slots:
+            raise ValueError(f"a draft tree of {self.top_k}x{self.depth} nodes needs {need} cache slots, the model has "
+                             f"{cfg.cache_slots}; lower top_k/depth")
+
+
+def accept(spec: SpecConfig, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
+    """The token-wise acceptance rule on action bins (0..255)."""
+    if spec.acceptance == "strict":
+        return draft_bins == target_bins
+    return jnp.abs(draft_bins - target_bins) <= spec.relax_bins
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class Tree:
+    """M = depth * top_k nodes, level-major: node (l, j) at index l * top_k + j."""
+    bins: jnp.ndarray  # [B, M] action bin of each node
+    score: jnp.ndarray  # [B, M] cumulative log-probability
+    depth: jnp.ndarray  # [M] 1..depth (root is depth 0)
+    parent: jnp.ndarray  # [B, M] parent node index (-1: the root)
+    anc: jnp.ndarray  # [B, M, M] bool: ancestors of each node, itself included
+
+
+def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: vla.KVCache,
+               root_feat: jnp.ndarray) -> Tree:
+    """The EAGLE-2 tree below the root. root_feat [B, D]: the drafter's feature at the
+    root's position (its head gives the root's children). The root sits at position
+    root_pos = dcache.length (the first uncommitted one), nodes of level l at root_pos + l;
+    node g's keys/values go to scratch slot dcache.length + g. `depth - 1` drafter passes."""
+    b = root_feat.shape[0]
+    k, d = spec.top_k, spec.depth
+    m = k * d
+    root_pos = dcache.length  # [B]
+    slots = jnp.arange(cfg.cache_slots)
+    prefix = dcache.key_mask & (slots[None] < dcache.length[:, None])  # [B, S]
+
+    logp = jax.nn.log_softmax(vla.action_head(tparams, cfg, root_feat))  # [B, 256]
+    score, bins = jax.lax.top_k(logp, k)  # level 1
+    parent = jnp.full((b, k), -1, jnp.int32)
+    all_bins, all_score, all_parent = [bins], [score], [parent]
+    anc_levels = [jnp.eye(k, m, dtype=bool)[None].repeat(b, 0)]  # [B, k, M]
+    feats = None
+    for level in range(1, d):
+        # Drafter pass over this level's k nodes: they read their parent's feature.
+        parent_feat = root_feat[:, None].repeat(k, 1) if level == 1 else jnp.take_along_axis(
+            feats, (all_parent[-1] - (level - 2) * k)[..., None], 1)
+        emb = vla.embed_tokens(tparams, all_bins[-1] + cfg.first_action_id)
+        write = dcache.length + (level - 1) * k  # this level's scratch slots
+        rel = slots[None] - dcache.length[:, None]  # [B, S] slot offset into the scratch area
+        anc = anc_levels[-1]  # [B, k, M]
+        in_tree = (rel >= 0) & (rel < m)
+        tree_ok = jnp.take_along_axis(anc, jnp.clip(rel, 0, m - 1)[:, None, :].repeat(k, 1), 2) & in_tree[:, None]
+        mask = prefix[:, None, :] | tree_ok
+        positions = (root_pos + level)[:, None].repeat(k, 1)
+        feats, dcache = drafter.step(dparams, cfg, dcache, emb, parent_feat, positions, write, mask)
+        child_logp = jax.nn.log_softmax(vla.action_head(tparams, cfg, feats))  # [B, k, 256]
+        cand = (all_score[-1][..., None] + child_logp).reshape(b, -1)
+        score, flat = jax.lax.top_k(cand, k)
+        par_local = flat // N_BINS
+        bins = flat % N_BINS
+        node_idx = level * k + jnp.arange(k)
+        all_bins.append(bins)
+        all_score.append(score)
+        all_parent.append(par_local + (level - 1) * k)
+        anc_levels.append(jnp.take_along_axis(anc, par_local[..., None], 1) | jax.nn.one_hot(node_idx, m, dtype=bool)[None])
+    depth = jnp.repeat(jnp.arange(1, d + 1), k)
+    return Tree(bins=jnp.concatenate(all_bins, 1), score=jnp.concatenate(all_score, 1), depth=depth,
+                parent=jnp.concatenate(all_parent, 1), anc=jnp.concatenate(anc_levels, 1))
+
+
+def select_nodes(tree: Tree, n: int) -> jnp.ndarray:
+    """Indices [B, n] of the n best nodes by cumulative log-probability, ancestors first
+    (a child scores below its parent: a depth penalty breaks exact ties)."""
+    _, idx = jax.lax.top_k(tree.score - 1e-4 * tree.depth[None], n)
+    return idx
+
+
+def tree_block(cfg: vla.VLAConfig, root: jnp.ndarray, tree: Tree, sel: jnp.ndarray):
+    """The verification block of [root, nodes sel]: token ids [B, 1+n], depth offsets
+    [B, 1+n] (position = cache length + depth) and the tree mask [B, 1+n, 1+n] (each node
+    sees the root, its ancestors and itself)."""
+    b, n = sel.shape
+    anc = jnp.take_along_axis(jnp.take_along_axis(tree.anc, sel[..., None], 1), sel[:, None, :], 2)  # [B, n, n]
+    block = jnp.concatenate([root[:, None], jnp.take_along_axis(tree.bins, sel, 1) + cfg.first_action_id], 1)
+    depth = jnp.concatenate([jnp.zeros((b, 1), jnp.int32), tree.depth[sel]], 1)
+    intra = jnp.zeros((b, n + 1, n + 1), bool).at[:, :, 0].set(True).at[:, 1:, 1:].set(anc)
+    return block, depth, intra
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class Verified:
+    n_accepted: jnp.ndarray  # [B] accepted draft tokens (0..depth)
+    path: jnp.ndarray  # [B, depth] block positions of the accepted path (valid: j < n_accepted)
+    tokens: jnp.ndarray  # [B, depth + 1] emitted tokens: the path then the bonus (valid: j <= n_accepted)
+    hidden: jnp.ndarray  # [B, depth + 1, D] target hidden of root + path (valid: j <= n_accepted)
+    cache: vla.KVCache  # target cache with root + path committed
+
+
+def verify(tparams, cfg: vla.VLAConfig, spec: SpecConfig, cache: vla.KVCache, root: jnp.ndarray, tree: Tree,
+           sel: jnp.ndarray) -> Verified:
+    """One target pass over [root, tree nodes sel] and the acceptance of the best path."""
+    b, n = sel.shape
+    d = spec.depth
+    take = lambda a: jnp.take_along_axis(a, sel, 1)
+    sel_bins, sel_depth = take(tree.bins), tree.depth[sel]
+    block, depth, intra = tree_block(cfg, root, tree, sel)
+    anc = intra[:, 1:, 1:]
+    logits, hidden, vcache = vla.decode(tparams, cfg, cache, block, depth, intra)
+    greedy = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B, 1+n] bins
+
+    # Block position of each node's parent: 0 for the root, else 1 + its index in sel.
+    pos_of = jnp.zeros(tree.bins.shape, jnp.int32).at[jnp.arange(b)[:, None], sel].set(1 + jnp.arange(n))
+    par = take(tree.parent)
+    par_block = jnp.where(par < 0, 0, jnp.take_along_axis(pos_of, jnp.maximum(par, 0), 1))
+    ok = accept(spec, sel_bins, jnp.take_along_axis(greedy, par_block, 1))  # [B, n]
+    path_ok = jnp.all(~anc | ok[:, None, :], -1)  # every ancestor (and itself) accepted
+    acc_depth = jnp.where(path_ok, sel_depth, 0)
+    best = jnp.argmax(acc_depth, 1)  # first (highest-scoring) of the deepest
+    n_acc = jnp.max(acc_depth, 1)
+    best_anc = jnp.take_along_axis(anc, best[:, None, None], 1)[:, 0]  # [B, n]
+    # Path block positions, by depth 1..d.
+    at_depth = best_anc[:, None, :] & (sel_depth[:, None, :] == jnp.arange(1, d + 1)[None, :, None])  # [B, d, n]
+    path = 1 + jnp.argmax(at_depth, -1)  # [B, d]
+    path = jnp.where(jnp.arange(d)[None] < n_acc[:, None], path, 0)
+    best_block = jnp.where(n_acc > 0, 1 + best, 0)
+    bonus = jnp.take_along_axis(greedy, best_block[:, None], 1)[:, 0] + cfg.first_action_id
+    path_tokens = jnp.take_along_axis(block, path, 1)
+    tokens = jnp.concatenate([path_tokens, jnp.zeros((b, 1), jnp.int32)], 1)
+    tokens = jnp.where(jnp.arange(d + 1)[None] == n_acc[:, None], bonus[:, None], tokens)
+    src = jnp.concatenate([jnp.zeros((b, 1), jnp.int32), path], 1)  # root, then the path
+    kept_hidden = jnp.take_along_axis(hidden, src[..., None], 1)
+    return Verified(n_accepted=n_acc, path=path, tokens=tokens, hidden=kept_hidden,
+                    cache=vla.commit(vcache, src, 1 + n_acc))
+
+
+def _where_rows(active, new, old):
+    """Per-row select: rows where `active` take `new`. Leaves have the batch on axis 0,
+    except KV caches' k/v ([L, B, ...])."""
+    def pick(n, o, axis=0):
+        shape = [1] * n.ndim
+        shape[axis] = -1
+        return jnp.where(active.reshape(shape), n, o)
+
+    def pick_any(n, o):
+        if isinstance(n, vla.KVCache):
+            return vla.KVCache(k=pick(n.k, o.k, 1), v=pick(n.v, o.v, 1), key_mask=pick(n.key_mask, o.key_mask),
+                               length=pick(n.length, o.length))
+        return pick(n, o)
+    return tuple(pick_any(n, o) for n, o in zip(new, old))
+
+
+def spec_decode(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, obs: vla.Observation):
+    """Speculative decoding of one action per row. Returns action token ids [B, 7] and
+    per-row stats: target_passes, drafter_passes, tokens (= 7), rounds."""
+    spec.check_fits(cfg)
+    b = obs.image.shape[0]
+    d = spec.depth
+    logits, hidden, prompt_x, cache = vla.prefill_features(tparams, cfg, obs)
+    root = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id
+    feat, dcache = drafter.prompt_pass(dparams, cfg, prompt_x, hidden, vla.prompt_key_mask(cfg, obs.instruction),
+                                       vla.embed_tokens(tparams, root))
+    out = jnp.zeros((b, ACTION_DIM + d + 1), jnp.int32).at[:, 0].set(root)
+    n_out = jnp.ones((b,), jnp.int32)
+    stats = {"target_passes": jnp.ones((b,), jnp.float32), "drafter_passes": jnp.ones((b,), jnp.float32),
+             "rounds": jnp.zeros((b,), jnp.float32)}
+
+    def cond(c):
+        return jnp.any(c[5] < ACTION_DIM)
+
+    def body(c):
+        cache, dcache, root, feat, out, n_out, stats = c
+        active = n_out < ACTION_DIM
+        tree = draft_tree(dparams, tparams, cfg, spec, dcache, feat)
+        v = verify(tparams, cfg, spec, cache, root, tree, select_nodes(tree, spec.total_tokens))
+        # Emit the path and the bonus.
+        j = jnp.arange(d + 1)[None]
+        dst = jnp.where(j <= v.n_accepted[:, None], n_out[:, None] + j, out.shape[1])  # out of range: dropped
+        new_out = out.at[jnp.arange(b)[:, None], dst].set(v.tokens, mode="drop")
+        new_n = n_out + 1 + v.n_accepted
+        # Drafter update: entries (emb(next token), target hidden) for root + path; the last
+        # valid one (reading the bonus token) predicts the feature of the next root.
+        slots = jnp.arange(cfg.cache_slots)
+        rel = slots[None] - dcache.length[:, None]
+        prefix = dcache.key_mask & (rel < 0)
+        causal = (rel[:, None, :] >= 0) & (rel[:, None, :] <= j[..., None])  # [B, d+1, S]
+        mask = prefix[:, None, :] | causal
+        positions = dcache.length[:, None] + j
+        feats, dc = drafter.step(dparams, cfg, dcache, vla.embed_tokens(tparams, v.tokens), v.hidden, positions,
+                                 dcache.length, mask)
+        new_len = dcache.length + 1 + v.n_accepted
+        dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)
+        new_feat = jnp.take_along_axis(feats, v.n_accepted[:, None, None], 1)[:, 0]
+        new_root = jnp.take_along_axis(v.tokens, v.n_accepted[:, None], 1)[:, 0]
+        inc = active.astype(jnp.float32)
+        new_stats = {"target_passes": stats["target_passes"] + inc, "drafter_passes": stats["drafter_passes"] + d * inc,
+                     "rounds": stats["rounds"] + inc}
+        new = (v.cache, dc, new_root, new_feat, new_out, new_n)
+        return (*_where_rows(active, new, (cache, dcache, root, feat, out, n_out)), new_stats)
+
+    c = jax.lax.while_loop(cond, body, (cache, dcache, root, feat, out, n_out, stats))
+    stats = dict(c[6], tokens=jnp.full((b,), ACTION_DIM, jnp.float32))
+    return c[4][:, :ACTION_DIM], stats
