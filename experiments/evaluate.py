@@ -22,7 +22,7 @@ from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, methods, results_io, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, spec_decode, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -32,6 +32,12 @@ flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the fi
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
+flags.DEFINE_enum("acceptance", "strict", list(spec_decode.ACCEPTANCE), "Speculative methods: acceptance rule.")
+flags.DEFINE_integer("relax_bins", 0, "token_relaxed: accept a draft within this many bins of the target's choice.")
+flags.DEFINE_integer("top_k", 8, "Draft tree: children kept per level (EAGLE-2 top-k).")
+flags.DEFINE_integer("depth", 4, "Draft tree: depth.")
+flags.DEFINE_integer("total_tokens", 32, "Draft tree: nodes verified per round (<= top_k * depth).")
 
 
 def main(argv):
@@ -44,6 +50,15 @@ def main(argv):
     if FLAGS.method != "expert":
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
         kwargs["checkpoint_path"] = FLAGS.checkpoint
+    if FLAGS.method == "drafter":
+        spec = dict(acceptance=FLAGS.acceptance, relax_bins=FLAGS.relax_bins, top_k=FLAGS.top_k, depth=FLAGS.depth,
+                    total_tokens=FLAGS.total_tokens)
+        try:
+            spec_decode.SpecConfig(**spec)
+        except ValueError as e:
+            raise app.UsageError(str(e)) from e
+        settings.update(spec, drafter=os.path.abspath(FLAGS.drafter))
+        kwargs.update(spec, drafter_path=FLAGS.drafter)
     done = results_io.load_resumable(FLAGS.out, settings)
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
     policy = methods.make_policy(FLAGS.method, env, **kwargs)
@@ -80,10 +95,11 @@ def main(argv):
 
     results = ev.evaluate(env, policy, cfg, done, on_batch)
     summary = write(results)
-    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'passes/act':>12}")
+    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'passes/act':>12}{'accept len':>12}")
     for name, s in summary["suites"].items():
-        passes = s.get("target_passes_per_action")
-        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{'-' if passes is None else f'{passes:.2f}':>12}")
+        passes, al = s.get("target_passes_per_action"), s.get("tokens_per_target_pass")
+        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{'-' if passes is None else f'{passes:.2f}':>12}"
+              f"{'-' if al is None else f'{al:.2f}':>12}")
     if timing["control_steps"]:
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")

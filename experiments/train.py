@@ -20,11 +20,13 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from heisd_jax import checkpoint, data, train, vla
+from heisd_jax import checkpoint, data, train, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 
 FLAGS = flags.FLAGS
-flags.DEFINE_enum("model", "vla", ["vla"], "What to train (the drafter comes with its issue).")
+flags.DEFINE_enum("model", "vla", ["vla", "drafter"], "What to train: the target VLA, or an EAGLE drafter for the "
+                  "target of --target (frozen).")
+flags.DEFINE_string("target", str(vla_policy.DEFAULT_CHECKPOINT), "--model=drafter: the target VLA checkpoint.")
 flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
 flags.DEFINE_string("out", "runs/vla", "Run directory (training state, log).")
 flags.DEFINE_string("export", "", "If set, write the final parameters as a policy checkpoint here.")
@@ -44,20 +46,43 @@ flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
-def main(argv):
-    del argv
-    logging.set_verbosity(logging.WARNING)
-    out = Path(FLAGS.out)
-    out.mkdir(parents=True, exist_ok=True)
-    cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr, warmup_steps=FLAGS.warmup_steps,
-                            label_sigma_bins=FLAGS.label_sigma_bins, image_shift=FLAGS.image_shift)
-    model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, patch_size=FLAGS.patch_size, d_model=FLAGS.d_model,
-                              n_layers=FLAGS.n_layers, mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
+def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
+    """Optimizer steps with logging, periodic checkpoints and the time budget; resumable."""
+    t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
+    key = jax.random.PRNGKey(cfg.seed + 1)
+    while int(state.step) < cfg.steps:
+        state, m = step_fn(state, key)
+        s = int(state.step)
+        out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
+        if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
+            rec = {"step": s, **record_fn(state, m, s), "elapsed_s": round(time.perf_counter() - t0, 1)}
+            print(json.dumps(rec), flush=True)
+            log.write(json.dumps(rec) + "\n")
+            log.flush()
+        if s % FLAGS.ckpt_every == 0 or s == cfg.steps or out_of_time:
+            checkpoint.save(mngr, s, state, meta)
+        if out_of_time:
+            print(f"time budget spent: stopping at step {s} of {cfg.steps}")
+            break
+    return state
+
+
+def _tables(model_cfg):
     train_eps, val_eps = data.split_episodes(FLAGS.demos, FLAGS.holdout)
     host = data.load_steps(FLAGS.demos, train_eps)
     val_host = data.load_steps(FLAGS.demos, val_eps) if val_eps else host
     if host.image.shape[1] != model_cfg.image_size:
-        raise app.UsageError(f"--image_size={model_cfg.image_size} but the demos hold {host.image.shape[1]}px images")
+        raise app.UsageError(f"the model takes {model_cfg.image_size}px images but the demos hold "
+                             f"{host.image.shape[1]}px ones")
+    print(f"{host.size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out; "
+          f"device {jax.devices()[0]}")
+    return host, val_host
+
+
+def train_vla(out: Path, cfg: train.TrainConfig):
+    model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, patch_size=FLAGS.patch_size, d_model=FLAGS.d_model,
+                              n_layers=FLAGS.n_layers, mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
+    host, val_host = _tables(model_cfg)
     mngr = checkpoint.manager(out / "state")
     state = train.init_state(model_cfg, cfg)
     tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
@@ -68,35 +93,70 @@ def main(argv):
         tok = ActionTokenizer.from_dict(meta["tokenizer"])
         print(f"resumed from step {int(state.step)}")
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
-    print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens; "
-          f"{host.size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out; device {jax.devices()[0]}")
+    print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
-    step_fn = train.make_train_step(model_cfg, cfg, tok)
+    step = train.make_train_step(model_cfg, cfg, tok)
     eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
-    key, eval_key = jax.random.PRNGKey(cfg.seed + 1), jax.random.PRNGKey(cfg.seed + 2)
+    eval_key = jax.random.PRNGKey(cfg.seed + 2)
+
+    def record(state, m, s):
+        vloss, vm = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
+        return {"loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()), "val_loss": float(vloss),
+                "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
+                "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]]}
+
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)})
-    t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
-    while int(state.step) < cfg.steps:
-        state, m = step_fn(state, table, key)
-        s = int(state.step)
-        out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
-        if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
-            vloss, vm = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
-            rec = {"step": s, "loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()),
-                   "val_loss": float(vloss), "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
-                   "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]],
-                   "elapsed_s": round(time.perf_counter() - t0, 1)}
-            print(json.dumps(rec), flush=True)
-            log.write(json.dumps(rec) + "\n")
-            log.flush()
-        if s % FLAGS.ckpt_every == 0 or s == cfg.steps or out_of_time:
-            checkpoint.save(mngr, s, state, meta)
-        if out_of_time:
-            print(f"time budget spent: stopping at step {s} of {cfg.steps}")
-            break
+    state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
         checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok, extra={"train": meta["train"]})
         print(f"policy checkpoint: {FLAGS.export}")
+
+
+def train_drafter(out: Path, cfg: train.TrainConfig):
+    tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target)
+    host, val_host = _tables(model_cfg)
+    table, val_table = jax.device_put(host), jax.device_put(val_host)
+    t0 = time.perf_counter()
+    tokens, val_tokens = (train.greedy_tokens(tparams, model_cfg, t) for t in (table, val_table))
+    print(f"target greedy tokens of {table.size + val_table.size} steps in {time.perf_counter() - t0:.1f}s")
+    fp = checkpoint.fingerprint(tparams)
+    mngr = checkpoint.manager(out / "state")
+    state = train.init_drafter_state(model_cfg, cfg)
+    meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
+            "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)}
+    if mngr.latest_step() is not None:
+        state, old = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
+        if old.get("target_fingerprint") != fp:
+            raise app.UsageError(f"{out} holds a drafter run for another target; use another --out")
+        print(f"resumed from step {int(state.step)}")
+    print(f"drafter {sum(x.size for x in jax.tree.leaves(state.params)) / 1e6:.2f}M parameters, target {fp}")
+    step = train.make_drafter_step(model_cfg, cfg)
+    eval_fn = train.make_drafter_eval(model_cfg, min(1024, val_table.size))
+    eval_key = jax.random.PRNGKey(cfg.seed + 2)
+
+    def record(state, m, s):
+        vloss, vm = eval_fn(state.params, tparams, val_table, val_tokens, jax.random.fold_in(eval_key, s))
+        return {"loss": float(m["loss"]), "reg": float(m["reg"]), "ce": float(m["ce"]), "val_loss": float(vloss),
+                "val_top1": [round(float(a), 4) for a in vm["top1"]]}
+
+    state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, tparams, table, tokens, k), record)
+    if FLAGS.export:
+        checkpoint.save_drafter(FLAGS.export, state.params, model_cfg, tparams, extra={"train": meta["train"]})
+        print(f"drafter checkpoint: {FLAGS.export}")
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    out = Path(FLAGS.out)
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
+                                warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
+                                image_shift=FLAGS.image_shift)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg)
 
 
 if __name__ == "__main__":

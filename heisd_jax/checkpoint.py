@@ -9,6 +9,7 @@ that name the path and the problem.
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 from pathlib import Path
 
 import jax
@@ -57,9 +58,7 @@ def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionT
     save(manager(path, max_to_keep=1), 0, params, metadata(model_cfg, tok, extra=extra))
 
 
-def load_policy(path: str | Path):
-    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory."""
-    path = Path(path)
+def _read_meta(path: Path):
     if not path.is_dir():
         raise CheckpointError(f"no checkpoint at {path}: directory does not exist")
     mngr = manager(path)
@@ -73,14 +72,10 @@ def load_policy(path: str | Path):
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise CheckpointError(f"checkpoint {path}: format {meta.get('format') if isinstance(meta, dict) else '?'}, "
                               f"expected {FORMAT}")
-    if meta.get("text_vocab") != list(language.VOCAB):
-        raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary")
-    try:
-        cfg = vla.VLAConfig(**meta["config"])
-        tok = ActionTokenizer.from_dict(meta["tokenizer"])
-    except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(f"checkpoint {path}: bad config or tokenizer metadata: {e}") from e
-    abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
+    return mngr, step, meta
+
+
+def _restore_params(path: Path, mngr, step, abstract):
     try:
         params, _ = restore(mngr, abstract, step)
     except Exception as e:
@@ -89,5 +84,54 @@ def load_policy(path: str | Path):
     for a, b in zip(jax.tree.leaves(abstract), jax.tree.leaves(params)):
         if tuple(a.shape) != tuple(np.shape(b)):
             raise CheckpointError(f"checkpoint {path}: parameter shape {np.shape(b)} does not match config {a.shape}")
-    return params, cfg, tok, meta
+    return params
 
+
+def load_policy(path: str | Path):
+    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory."""
+    path = Path(path)
+    mngr, step, meta = _read_meta(path)
+    if meta.get("kind", "vla") != "vla":
+        raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a VLA policy")
+    if meta.get("text_vocab") != list(language.VOCAB):
+        raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary")
+    try:
+        cfg = vla.VLAConfig(**meta["config"])
+        tok = ActionTokenizer.from_dict(meta["tokenizer"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {path}: bad config or tokenizer metadata: {e}") from e
+    abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
+    return _restore_params(path, mngr, step, abstract), cfg, tok, meta
+
+
+def fingerprint(params) -> str:
+    """A short content hash of a parameter pytree (ties a drafter to its target)."""
+    h = hashlib.sha256()
+    for path, leaf in sorted(jax.tree_util.tree_leaves_with_path(params), key=lambda kv: jax.tree_util.keystr(kv[0])):
+        h.update(jax.tree_util.keystr(path).encode())
+        h.update(np.ascontiguousarray(np.asarray(leaf, np.float32)).tobytes())
+    return h.hexdigest()[:16]
+
+
+def save_drafter(path: str | Path, dparams, target_cfg: vla.VLAConfig, target_params, extra: dict | None = None):
+    """Writes a drafter checkpoint, tied to its target by the target's fingerprint."""
+    meta = dict(format=FORMAT, kind="drafter", config=dataclasses.asdict(target_cfg),
+                target_fingerprint=fingerprint(target_params), **(extra or {}))
+    save(manager(path, max_to_keep=1), 0, dparams, meta)
+
+
+def load_drafter(path: str | Path, target_cfg: vla.VLAConfig, target_params):
+    """(drafter params, meta); refuses a drafter trained for another target."""
+    from heisd_jax import drafter  # noqa: PLC0415 (drafter imports vla; keep this module light)
+
+    path = Path(path)
+    mngr, step, meta = _read_meta(path)
+    if meta.get("kind") != "drafter":
+        raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a drafter")
+    if meta.get("config") != dataclasses.asdict(target_cfg):
+        raise CheckpointError(f"drafter {path} was trained for a target of another config")
+    if meta.get("target_fingerprint") != fingerprint(target_params):
+        raise CheckpointError(f"drafter {path} was trained for another target checkpoint (fingerprint "
+                              f"{meta.get('target_fingerprint')} != {fingerprint(target_params)})")
+    abstract = jax.eval_shape(lambda: drafter.init_params(target_cfg, jax.random.PRNGKey(0)))
+    return _restore_params(path, mngr, step, abstract), meta

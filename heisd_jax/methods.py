@@ -13,7 +13,7 @@ from typing import Callable
 from envs import expert
 from envs.env import TabletopEnv
 from envs.rollout import Policy
-from heisd_jax import checkpoint, vla_policy
+from heisd_jax import checkpoint, spec_decode, vla_policy
 
 
 def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]:
@@ -26,9 +26,21 @@ def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]
     return make
 
 
+def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
+                    drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER, **spec_settings) -> Policy:
+    """Spec-VLA: EAGLE-2 tree drafts from the drafter, verified by the target."""
+    spec = spec_decode.SpecConfig(**spec_settings)
+    params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
+    spec.check_fits(cfg)
+    dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
+    decode = vla_policy.drafter_sd(spec)
+    return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok, decode)
+
+
 METHODS: dict[str, Callable[..., Policy]] = {
     "expert": lambda env, **kw: expert.policy(env, expert.ExpertConfig(**kw)),
     "ar": _vla_method("ar", vla_policy.ar),
+    "drafter": _drafter_method,
 }
 USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
 

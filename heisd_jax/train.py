@@ -111,3 +111,57 @@ def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, lab
         return action_loss(params, model_cfg, obs, tokens, label_sigma_bins)
 
     return evaluate
+
+
+# --- the drafter (EAGLE), trained against a frozen target ---------------------------------
+
+def greedy_tokens(tparams, model_cfg: vla.VLAConfig, table: data.StepTable, batch: int = 1024) -> jnp.ndarray:
+    """The target's greedy action tokens [N, 7] for every step of the table: the drafter
+    learns to predict the target's own choices (what verification will compare against)."""
+    run = jax.jit(lambda p, obs: vla.ar_decode(p, model_cfg, obs)[0])
+    out = []
+    for start in range(0, table.size, batch):
+        i = jnp.minimum(jnp.arange(start, start + batch), table.size - 1)
+        obs = vla.Observation(image=table.image[i], instruction=table.instruction[i], proprio=table.proprio[i])
+        out.append(run(tparams, obs))
+    return jnp.concatenate(out)[: table.size]
+
+
+def init_drafter_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState:
+    from heisd_jax import drafter  # noqa: PLC0415
+
+    params = drafter.init_params(model_cfg, jax.random.PRNGKey(cfg.seed))
+    return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
+
+
+def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig):
+    """Jitted (state, tparams, table, tokens, key) -> (state, metrics): EAGLE's loss on a
+    random minibatch of steps teacher-forced on the target's greedy tokens."""
+    from heisd_jax import drafter  # noqa: PLC0415
+    opt = optimizer(cfg)
+
+    @jax.jit
+    def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
+        k_idx, k_shift = jax.random.split(jax.random.fold_in(key, state.step))
+        i = jax.random.randint(k_idx, (cfg.batch_size,), 0, table.size)
+        obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift),
+                              instruction=table.instruction[i], proprio=table.proprio[i])
+        (loss, metrics), grads = jax.value_and_grad(drafter.loss, has_aux=True)(state.params, tparams, model_cfg, obs,
+                                                                                tokens[i])
+        updates, opt_state = opt.update(grads, state.opt_state, state.params)
+        return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
+                          opt_state=opt_state), {"loss": loss, **metrics}
+
+    return step
+
+
+def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
+    from heisd_jax import drafter  # noqa: PLC0415
+
+    @jax.jit
+    def evaluate(dparams, tparams, table: data.StepTable, tokens, key):
+        i = jax.random.randint(key, (batch,), 0, table.size)
+        obs = vla.Observation(image=table.image[i], instruction=table.instruction[i], proprio=table.proprio[i])
+        return drafter.loss(dparams, tparams, model_cfg, obs, tokens[i])
+
+    return evaluate

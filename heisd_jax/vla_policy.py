@@ -20,6 +20,7 @@ from heisd_jax import vla
 from heisd_jax.tokenizer import ActionTokenizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
+DEFAULT_DRAFTER = Path(__file__).resolve().parents[1] / "checkpoints" / "drafter"
 
 DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, Stats]]
 
@@ -43,3 +44,13 @@ def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, S
     b = tokens.shape[0]
     return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
                     "tokens": jnp.full((b,), vla.ACTION_DIM, jnp.float32)}
+
+
+def drafter_sd(spec):
+    """Drafter-based speculative decoding (Spec-VLA / EAGLE-2) with the given drafter
+    parameters and `spec_decode.SpecConfig`, as a DecodeFn over (target params, ...)."""
+    from heisd_jax import spec_decode  # noqa: PLC0415
+
+    def decode(params, cfg, obs):
+        return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)
+    return decode

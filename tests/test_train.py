@@ -116,3 +116,31 @@ def test_mismatched_config_is_refused(policy_ckpt, tmp_path):
         f.write_text(json.dumps(meta))
     with pytest.raises(checkpoint.CheckpointError, match="not matching|does not match"):
         checkpoint.load_policy(bad)
+
+
+def test_drafter_training_lowers_its_loss_and_its_checkpoint_is_tied_to_the_target(dataset, policy_ckpt, tmp_path):
+    tparams = policy_ckpt[1]
+    table = jax.device_put(data.load_steps(str(dataset)))
+    tokens = train.greedy_tokens(tparams, CFG, table, batch=64)
+    assert tokens.shape == (table.size, 7)
+    cfg = train.TrainConfig(steps=40, batch_size=32, lr=3e-3, warmup_steps=5)
+    state = train.init_drafter_state(CFG, cfg)
+    step = train.make_drafter_step(CFG, cfg)
+    ev = train.make_drafter_eval(CFG, 128)
+    key = jax.random.PRNGKey(0)
+    before, _ = ev(state.params, tparams, table, tokens, key)
+    for _ in range(cfg.steps):
+        state, _ = step(state, tparams, table, tokens, key)
+    after, metrics = ev(state.params, tparams, table, tokens, key)
+    assert float(after) < float(before) * 0.7, (float(before), float(after))
+    assert metrics["top1"].shape == (6,)
+    path = tmp_path / "drafter"
+    checkpoint.save_drafter(path, state.params, CFG, tparams)
+    dparams, meta = checkpoint.load_drafter(path, CFG, tparams)
+    for a, b in zip(jax.tree.leaves(state.params), jax.tree.leaves(dparams)):
+        np.testing.assert_array_equal(a, b)
+    other = jax.tree.map(lambda x: x + 1e-3, tparams)
+    with pytest.raises(checkpoint.CheckpointError, match="another target"):
+        checkpoint.load_drafter(path, CFG, other)
+    with pytest.raises(checkpoint.CheckpointError, match="not a VLA policy"):
+        checkpoint.load_policy(path)
