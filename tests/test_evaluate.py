@@ -78,3 +78,18 @@ def test_ar_policy_acts_on_a_batch_like_ar_decode(tiny_ckpt, compiled):
     tokens, _ = vla.ar_decode(params, cfg, vla_policy.observation(state))
     np.testing.assert_allclose(np.asarray(action), np.asarray(tok.decode(tokens)), rtol=1e-6)
     assert action.shape == (2, 7) and np.all(np.asarray(stats["target_passes"]) == 7)
+
+
+def test_shipped_drafter_policy_in_strict_mode_acts_like_ar(compiled):
+    """The registered `drafter` method loads the shipped target + drafter pair and, with
+    strict acceptance, emits the AR policy's actions."""
+    env = compiled.env
+    spec_pol = methods.make_policy("drafter", env, top_k=4, depth=3, total_tokens=12)
+    ar_pol = methods.make_policy("ar", env)
+    state = compiled.start([0, 11])
+    state = state.replace(obs=state.obs.replace(image=jax.random.randint(
+        jax.random.PRNGKey(1), (2, 64, 64, 3), 0, 255).astype(np.uint8)))
+    a_spec, _, stats = jax.jit(spec_pol.act)(spec_pol.params, state, (), None)
+    a_ar, _, _ = jax.jit(ar_pol.act)(ar_pol.params, state, (), None)
+    np.testing.assert_array_equal(np.asarray(a_spec), np.asarray(a_ar))
+    assert np.all(np.asarray(stats["target_passes"]) <= 7) and np.all(np.asarray(stats["drafter_passes"]) >= 1)
