@@ -42,8 +42,10 @@ def per_env(name: str, init: Callable[[EnvState], Any], act: Callable[[EnvState,
     return Policy(name=name, init=lambda params, states: jax.vmap(init)(states), act=act_b)
 
 
-def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray):
+def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int = 0):
     reset_keys, act_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
+    if seed:  # a Python int: seed 0 keeps the historical keys
+        act_keys = jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys)
     state = jax.vmap(env.reset)(reset_keys, task_ids)
     return state, policy.init(policy.params, state), act_keys
 
@@ -59,12 +61,14 @@ def _stats_shape(policy: Policy, state, pstate, act_keys) -> Stats:
 
 
 def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray,
-                 max_steps: int) -> tuple[EnvState, Stats, jnp.ndarray]:
+                 max_steps: int, seed: int = 0) -> tuple[EnvState, Stats, jnp.ndarray]:
     """Runs a batch of episodes to the end (all done, or `max_steps`).
-    `keys` [B, 2] are initial-state keys (see TabletopEnv.initial_state_keys). Returns the
+    `keys` [B, 2] are initial-state keys (see TabletopEnv.initial_state_keys); `seed` only
+    changes the keys handed to the policy (the initial states stay the fixed ones, as in
+    LIBERO; deterministic policies such as greedy decoding ignore it). Returns the
     final states, the policy's decode statistics summed per env over its running steps
     (dict of [B]), and the number of control steps the batch loop ran."""
-    state, pstate, act_keys = _start(env, policy, keys, task_ids)
+    state, pstate, act_keys = _start(env, policy, keys, task_ids, seed)
     totals = _stats_shape(policy, state, pstate, act_keys)
 
     def cond(c):

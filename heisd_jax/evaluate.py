@@ -40,7 +40,7 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -
 
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
-             on_batch: Callable[[dict[str, list], dict], None] | None = None) -> dict[str, list]:
+             on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
     decode totals summed over the episode's actions (e.g. target_passes). `on_batch(results,
@@ -51,7 +51,7 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     todo = pending_episodes(env, cfg, results)
     max_steps = int(max(t.max_steps for t in env.tasks))
     run = jax.jit(lambda params, k, t: rollout.run_episodes(
-        env, dataclasses.replace(policy, params=params), k, t, max_steps))
+        env, dataclasses.replace(policy, params=params), k, t, max_steps, seed))
     compiled, compile_s = None, 0.0
     for start in range(0, len(todo), cfg.num_envs):
         chunk = todo[start: start + cfg.num_envs]

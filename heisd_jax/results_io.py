@@ -36,3 +36,97 @@ def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
             f"refusing to overwrite it: choose another --out"
         )
     return data.get("episodes", {})
+
+
+# --- sweeps: one JSON line per finished cell ----------------------------------------------
+
+SWEEP_FORMAT = "heisd-jax-sweep-v1"
+
+
+def cell_key(cell: dict) -> str:
+    """Canonical identity of a sweep cell (method, its settings, suite, seed, batch size...)."""
+    return json.dumps(cell, sort_keys=True, separators=(",", ":"))
+
+
+class SweepFile:
+    """A JSON-lines results file: a header line ({"format", "sweep": fixed settings}), then one
+    record per finished cell ({"cell": {...}, ...}). Appends are flushed and fsynced line by
+    line, so a crash can at worst leave one partial trailing line; opening the file detects
+    it and cuts it off (that cell is redone), while damage anywhere else, or a header of
+    other settings, is refused rather than overwritten."""
+
+    def __init__(self, path: str | os.PathLike, sweep: dict):
+        self.path = Path(path)
+        self.sweep = sweep
+        self.records: list[dict] = []
+        self.repaired = False
+        if self.path.exists() and self.path.stat().st_size:
+            self._load()
+        else:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            write_json_lines_atomic(self.path, [{"format": SWEEP_FORMAT, "sweep": sweep}])
+
+    def _load(self):
+        raw = self.path.read_bytes()
+        lines = raw.split(b"\n")
+        complete, tail = lines[:-1], lines[-1]  # a file we wrote ends with a newline
+        parsed = []
+        for i, line in enumerate(complete):
+            try:
+                parsed.append(json.loads(line))
+            except (json.JSONDecodeError, UnicodeDecodeError) as e:
+                if i == len(complete) - 1 and not tail:  # a damaged last line: redo that cell
+                    complete, tail = complete[:-1], line
+                    break
+                raise ValueError(f"{self.path}: line {i + 1} is damaged ({e}); not a trailing partial write, "
+                                 f"refusing to touch the file: choose another --out") from e
+        if not parsed or not isinstance(parsed[0], dict) or parsed[0].get("format") != SWEEP_FORMAT:
+            raise ValueError(f"{self.path} is not a {SWEEP_FORMAT} results file; choose another --out")
+        if parsed[0].get("sweep") != self.sweep:
+            raise ValueError(f"{self.path} holds a sweep of other settings ({parsed[0].get('sweep')}); refusing to "
+                             f"mix results: choose another --out")
+        if tail:  # a partial trailing line (crash mid-write): drop it, keep everything before
+            self.repaired = True
+            write_json_lines_atomic(self.path, parsed)
+        self.records = parsed[1:]
+
+    def done(self) -> set[str]:
+        return {cell_key(r["cell"]) for r in self.records}
+
+    def append(self, record: dict) -> None:
+        if cell_key(record["cell"]) in self.done():
+            raise ValueError(f"cell already recorded: {record['cell']}")
+        with open(self.path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+        self.records.append(record)
+
+
+def write_json_lines_atomic(path: Path, objs: list) -> None:
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    with open(tmp, "w") as f:
+        for o in objs:
+            f.write(json.dumps(o) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_sweep(path: str | os.PathLike) -> tuple[dict, list[dict]]:
+    """(sweep settings, records) of a sweep file, for reports (a partial trailing line is
+    skipped, not repaired)."""
+    lines = Path(path).read_text().split("\n")
+    objs = []
+    for i, line in enumerate(lines):
+        if not line:
+            continue
+        try:
+            objs.append(json.loads(line))
+        except json.JSONDecodeError as e:
+            if i >= len(lines) - 2:
+                break
+            raise ValueError(f"{path}: line {i + 1} is damaged ({e})") from e
+    if not objs or objs[0].get("format") != SWEEP_FORMAT:
+        raise ValueError(f"{path} is not a {SWEEP_FORMAT} results file")
+    return objs[0]["sweep"], objs[1:]

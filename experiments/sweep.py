@@ -1,0 +1,198 @@
+"""Batched evaluation sweeps: methods x suites x seeds x batch sizes, one JSON line per cell.
+
+  python -m experiments.sweep --methods=ar,drafter:acceptance=token_relaxed,relax_bins=9 \
+      --suites=all --episodes=50 --num_envs=256 --out=results/sweep.jsonl
+  python -m experiments.sweep --config=sweep.json       # the same settings as a JSON object
+  python -m experiments.report results/sweep.jsonl
+
+A method is NAME or NAME:key=value,key=value (e.g. drafter:top_k=4,depth=2,total_tokens=8).
+Every cell runs the batched evaluator on the suite's tasks and is appended to --out (with
+the method's full settings, the git commit, the device and library versions) as soon as it
+finishes: rerunning the same command skips finished cells, and a partial last line left by
+a crash is cut off and its cell redone. A file from a sweep of other fixed settings
+(episodes, tasks, checkpoints) is refused, never overwritten. Seeds change only the keys
+handed to the policy: the initial states are the fixed evaluation ones.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax
+import mujoco
+from envs import tasks as tasks_lib
+from envs.env import EnvConfig, TabletopEnv
+from heisd_jax import evaluate as ev, methods, results_io, spec_decode, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("config", "", "JSON file with any of: methods, suites, tasks, episodes, num_envs, seeds.")
+flags.DEFINE_string("methods", "ar", "Comma-separated methods, each NAME or NAME:key=value,key=value.")
+flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
+flags.DEFINE_list("tasks", [], "Only these task names.")
+flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
+flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
+flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
+
+
+def _value(v: str):
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return v
+
+
+def parse_methods(spec: str) -> list[tuple[str, dict]]:
+    """'ar,drafter:acceptance=token_relaxed,relax_bins=9' (or ';'-separated) ->
+    [(name, settings), ...]: a comma-separated key=value after NAME:... belongs to it."""
+    parts: list[str] = []
+    for tok in (t.strip() for t in spec.replace(";", ",").split(",")):
+        if not tok:
+            continue
+        if "=" in tok and ":" not in tok and parts:
+            parts[-1] += "," + tok
+        else:
+            parts.append(tok)
+    out = []
+    for part in (p.strip() for p in parts if p.strip()):
+        name, _, rest = part.partition(":")
+        if name not in methods.METHODS:
+            raise app.UsageError(f"unknown method {name!r}; valid methods: {', '.join(sorted(methods.METHODS))}")
+        settings = {}
+        for kv in filter(None, rest.split(",")):
+            k, eq, v = kv.partition("=")
+            if not eq:
+                raise app.UsageError(f"method setting {kv!r} of {name!r} is not key=value")
+            settings[k.strip()] = _value(v.strip())
+        if name == "drafter":
+            try:
+                spec_decode.SpecConfig(**settings)
+            except (TypeError, ValueError) as e:
+                raise app.UsageError(f"method {part!r}: {e}") from e
+        elif settings and name != "expert":
+            raise app.UsageError(f"method {name!r} takes no settings, got {settings}")
+        out.append((name, settings))
+    return out
+
+
+def _provenance() -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
+    except OSError:
+        commit = None
+    import flax  # noqa: PLC0415
+
+    return {"git_commit": commit, "device": jax.devices()[0].device_kind, "n_devices": jax.device_count(),
+            "versions": {"jax": jax.__version__, "flax": flax.__version__, "mujoco": mujoco.__version__}}
+
+
+def run_cell(cell: dict, task_list, progress) -> dict:
+    name, settings = cell["method"], dict(cell["settings"])
+    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(name, True)))
+    kwargs = dict(settings)
+    if name != "expert":
+        kwargs["checkpoint_path"] = FLAGS.checkpoint
+    if name == "drafter":
+        kwargs["drafter_path"] = FLAGS.drafter
+    policy = methods.make_policy(name, env, **kwargs)
+    timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
+
+    def on_batch(results, t):
+        for k in ("batch_seconds", "control_steps", "env_steps"):
+            timing[k] += t[k]
+        timing["compile_seconds"] = t["compile_seconds"]
+        progress(results, t["episodes"])
+
+    t0 = time.perf_counter()
+    results = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=cell["episodes"], num_envs=cell["num_envs"]),
+                          on_batch=on_batch, seed=cell["seed"])
+    summary = ev.summarize(env.tasks, results)
+    timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / max(timing["control_steps"], 1)
+    timing["wall_seconds"] = time.perf_counter() - t0
+    per_episode_al = [r["decode"]["tokens"] / max(r["decode"]["target_passes"], 1e-9)
+                      for recs in results.values() for r in recs if r and "tokens" in r.get("decode", {})]
+    return {"cell": cell, "suite": summary["suites"].get(cell["suite"], {}), "tasks": summary["tasks"],
+            "timing": timing, "episode_acceptance_length": per_episode_al, **_provenance(),
+            "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    conf = {}
+    if FLAGS.config:
+        try:
+            conf = json.loads(Path(FLAGS.config).read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise app.UsageError(f"--config={FLAGS.config}: {e}") from e
+        unknown = set(conf) - {"methods", "suites", "tasks", "episodes", "num_envs", "seeds"}
+        if unknown:
+            raise app.UsageError(f"--config: unknown keys {sorted(unknown)}; valid: methods, suites, tasks, episodes, "
+                                 f"num_envs, seeds")
+    method_spec = conf.get("methods", FLAGS.methods)
+    method_list = parse_methods(";".join(method_spec) if isinstance(method_spec, list) else method_spec)
+    suites_arg = conf.get("suites", FLAGS.suites)
+    suites = list(tasks_lib.SUITES) if suites_arg == "all" else (
+        suites_arg if isinstance(suites_arg, list) else suites_arg.split(","))
+    task_filter = conf.get("tasks", FLAGS.tasks) or None
+    episodes = int(conf.get("episodes", FLAGS.episodes))
+    num_envs = [int(x) for x in conf.get("num_envs", FLAGS.num_envs)]
+    seeds = [int(x) for x in conf.get("seeds", FLAGS.seeds)]
+    try:
+        chosen = tasks_lib.get_tasks(",".join(suites), task_filter)
+        per_suite = {s: tuple(t for t in chosen if t.suite == s) for s in suites}
+        ev.EvalConfig(episodes_per_task=episodes, num_envs=min(num_envs))
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    per_suite = {s: t for s, t in per_suite.items() if t}
+    sweep = {"episodes": episodes, "tasks": task_filter, "checkpoint": os.path.abspath(FLAGS.checkpoint),
+             "drafter": os.path.abspath(FLAGS.drafter)}
+    try:
+        store = results_io.SweepFile(FLAGS.out, sweep)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if store.repaired:
+        print(f"{FLAGS.out}: cut off a partial last line (interrupted write); that cell is redone")
+    cells = [dict(method=m, settings=s, suite=su, seed=sd, num_envs=b, episodes=episodes)
+             for (m, s), su, sd, b in itertools.product(method_list, per_suite, seeds, num_envs)]
+    done = store.done()
+    todo = [c for c in cells if results_io.cell_key(c) not in done]
+    n_eps = {su: len(t) * episodes for su, t in per_suite.items()}
+    total = sum(n_eps[c["suite"]] for c in todo)
+    print(f"sweep: {len(cells)} cells, {len(cells) - len(todo)} already in {FLAGS.out}, {len(todo)} to run "
+          f"({total} episodes)")
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn  # noqa: PLC0415
+
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
+                  TextColumn("success so far {task.fields[sr]}"), TimeElapsedColumn(), TimeRemainingColumn()) as bar:
+        task = bar.add_task("sweep", total=total, sr="-")
+        counts = {"succ": 0, "n": 0}
+        for cell in todo:
+            bar.update(task, description=f"{cell['method']} {cell['suite']} B={cell['num_envs']} seed={cell['seed']}")
+
+            def progress(results, n, cell=cell):
+                bar.advance(task, n)
+
+            rec = run_cell(cell, per_suite[cell["suite"]], progress)
+            counts["succ"] += rec["suite"].get("successes", 0)
+            counts["n"] += rec["suite"].get("episodes", 0)
+            bar.update(task, sr=f"{counts['succ'] / max(counts['n'], 1):.3f}")
+            store.append(rec)
+    print(f"results: {os.path.abspath(FLAGS.out)}  (python -m experiments.report {FLAGS.out})")
+
+
+if __name__ == "__main__":
+    app.run(main)
