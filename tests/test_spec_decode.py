@@ -188,4 +188,4 @@ def test_spec_config_rejects_bad_settings():
     with pytest.raises(ValueError, match="total_tokens"):
         sd.SpecConfig(top_k=2, depth=2, total_tokens=5)
     with pytest.raises(ValueError, match="cache slots"):
-        sd.SpecConfig(top_k=8, depth=8, total_tokens=50).check_fits(CFG)
+        sd.SpecConfig(top_k=16, depth=8, total_tokens=50).check_fits(CFG)

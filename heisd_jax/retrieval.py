@@ -1,0 +1,144 @@
+"""The retrieval datastore of HeiSD's retrieval drafts (REST-style; HeiSD's use: our design).
+
+Keys describe where the robot is in a task: the last `history` actions (normalised to
+[-1, 1] by the target's tokenizer; zeros before the episode start), the end-effector
+position (scaled, `pos_scale` per metre), its quaternion and jaw opening, i.e. the proprio
+vector; values are the 7 tokens of the action taken next, tokenized by the target's
+tokenizer. Entries carry their task (global task index): a query only matches its own task.
+
+`query` is exact k-nearest neighbours on device: squared distances by one matmul,
+`lax.top_k`, a static number of candidates with a validity mask (same task, within
+`max_dist`). Saved as one .npz + meta.json beside the checkpoints, tied to the target's
+tokenizer and checkpoint fingerprint; a datastore built for another target is refused.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
+
+FORMAT = "heisd-jax-datastore-v1"
+
+
+@dataclasses.dataclass(frozen=True)
+class KeySpec:
+    history: int = 2  # previous actions in the key
+    pos_scale: float = 10.0  # per metre: 1 cm of end-effector position weighs 0.1
+
+    @property
+    def dim(self) -> int:
+        return self.history * ACTION_DIM + 8
+
+
+@struct.dataclass
+class Datastore:
+    keys: jnp.ndarray  # [N, dim] float32
+    sq_norms: jnp.ndarray  # [N] |key|^2
+    tokens: jnp.ndarray  # [N, 7] int32 (action ids of the target's vocabulary)
+    task: jnp.ndarray  # [N] int32 global task index
+
+    @property
+    def size(self) -> int:
+        return self.tokens.shape[0]
+
+
+def make_keys(spec: KeySpec, tok: ActionTokenizer, prev_actions, proprio) -> jnp.ndarray:
+    """Keys [..., dim] from the last `history` actions [..., history, 7] (oldest first; zeros
+    where none) and the proprio vector [..., 8]."""
+    prev = jnp.clip(tok.normalize(jnp.asarray(prev_actions, jnp.float32)), -1, 1)
+    prev = prev.reshape(prev.shape[:-2] + (spec.history * ACTION_DIM,))
+    proprio = jnp.asarray(proprio, jnp.float32)
+    return jnp.concatenate([prev, proprio[..., :3] * spec.pos_scale, proprio[..., 3:]], -1)
+
+
+def episode_history(actions: np.ndarray, history: int) -> np.ndarray:
+    """[T, history, 7]: for each step, the actions of the `history` steps before it."""
+    t = len(actions)
+    padded = np.concatenate([np.zeros((history, ACTION_DIM), actions.dtype), actions])
+    return np.stack([padded[i: i + history] for i in range(t)])
+
+
+def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
+    """episodes: iterable of (global task index, actions [T, 7], proprio [T, 8])."""
+    keys, tokens, task = [], [], []
+    for task_id, actions, proprio in episodes:
+        keys.append(np.asarray(make_keys(spec, tok, episode_history(actions, spec.history), proprio)))
+        tokens.append(np.asarray(tok.encode(jnp.asarray(actions))))
+        task.append(np.full(len(actions), task_id, np.int32))
+    if not keys:
+        raise ValueError("no episodes to build a datastore from")
+    k = np.concatenate(keys).astype(np.float32)
+    return Datastore(keys=jnp.asarray(k), sq_norms=jnp.asarray((k * k).sum(-1)),
+                     tokens=jnp.asarray(np.concatenate(tokens), jnp.int32), task=jnp.asarray(np.concatenate(task)))
+
+
+def query(store: Datastore, keys: jnp.ndarray, task: jnp.ndarray, n: int, max_dist: float = jnp.inf):
+    """Exact kNN within the query's task. keys [B, dim], task [B] -> (candidate tokens
+    [B, n, 7], squared distances [B, n], valid [B, n])."""
+    d2 = (keys * keys).sum(-1, keepdims=True) - 2.0 * keys @ store.keys.T + store.sq_norms[None]
+    d2 = jnp.where(store.task[None] == task[:, None], jnp.maximum(d2, 0.0), jnp.inf)
+    neg, idx = jax.lax.top_k(-d2, n)
+    dist = -neg
+    return store.tokens[idx], dist, jnp.isfinite(dist) & (dist <= max_dist)
+
+
+def save(path: str | os.PathLike, store: Datastore, spec: KeySpec, tok: ActionTokenizer, target_fingerprint: str,
+         extra: dict | None = None) -> None:
+    """Writes <path>/datastore.npz and meta.json via a temporary directory and a rename."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.mkdir(parents=True, exist_ok=False)
+    np.savez(tmp / "datastore.npz", keys=np.asarray(store.keys), tokens=np.asarray(store.tokens, np.int16),
+             task=np.asarray(store.task, np.int16))
+    meta = dict(format=FORMAT, key_spec=dataclasses.asdict(spec), tokenizer=tok.to_dict(),
+                target_fingerprint=target_fingerprint, size=store.size, **(extra or {}))
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    if path.exists():
+        old = path.with_name(f".{path.name}.old-{os.getpid()}")
+        os.replace(path, old)
+        os.replace(tmp, path)
+        for f in old.iterdir():
+            f.unlink()
+        old.rmdir()
+    else:
+        os.replace(tmp, path)
+
+
+def load(path: str | os.PathLike, tok: ActionTokenizer, target_fingerprint: str) -> tuple[Datastore, KeySpec, dict]:
+    """(datastore, key spec, meta); refuses one built for another tokenizer or target."""
+    path = Path(path)
+    try:
+        meta = json.loads((path / "meta.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"no readable datastore at {path}: {e}") from e
+    if meta.get("format") != FORMAT:
+        raise ValueError(f"{path}: format {meta.get('format')}, expected {FORMAT}")
+    try:
+        same_tok = ActionTokenizer.from_dict(meta["tokenizer"]) == tok
+    except (KeyError, TypeError, ValueError):
+        same_tok = False
+    if not same_tok:
+        raise ValueError(f"datastore {path} was built with another action tokenizer")
+    if meta.get("target_fingerprint") != target_fingerprint:
+        raise ValueError(f"datastore {path} was built for another target checkpoint "
+                         f"({meta.get('target_fingerprint')} != {target_fingerprint})")
+    try:
+        with np.load(path / "datastore.npz") as z:
+            keys, tokens, task = z["keys"], z["tokens"].astype(np.int32), z["task"].astype(np.int32)
+    except Exception as e:  # truncated or damaged archive
+        raise ValueError(f"datastore {path}: cannot read datastore.npz ({e})") from e
+    spec = KeySpec(**meta["key_spec"])
+    if keys.shape != (meta["size"], spec.dim) or tokens.shape != (meta["size"], ACTION_DIM):
+        raise ValueError(f"datastore {path}: arrays {keys.shape}/{tokens.shape} do not match its metadata")
+    store = Datastore(keys=jnp.asarray(keys), sq_norms=jnp.asarray((keys * keys).sum(-1)), tokens=jnp.asarray(tokens),
+                      task=jnp.asarray(task))
+    return store, spec, meta

@@ -1,0 +1,73 @@
+"""The retrieval datastore: kNN against brute force, task isolation, save/load and refusals."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import retrieval
+from heisd_jax.tokenizer import ActionTokenizer
+
+TOK = ActionTokenizer((-1.0,) * 7, (1.0,) * 7, 300)
+SPEC = retrieval.KeySpec(history=2)
+
+
+def _episodes(rng, n=6, t=25):
+    for i in range(n):
+        yield i % 3, rng.uniform(-1, 1, (t, 7)).astype(np.float32), rng.normal(size=(t, 8)).astype(np.float32)
+
+
+@pytest.fixture(scope="module")
+def store():
+    return retrieval.build(SPEC, TOK, _episodes(np.random.default_rng(0)))
+
+
+def test_episode_history_is_the_previous_actions_zero_padded():
+    a = np.arange(4 * 7, dtype=np.float32).reshape(4, 7)
+    h = retrieval.episode_history(a, 2)
+    np.testing.assert_array_equal(h[0], 0)
+    np.testing.assert_array_equal(h[1], np.stack([np.zeros(7), a[0]]))
+    np.testing.assert_array_equal(h[3], a[1:3])
+
+
+def test_knn_equals_brute_force_within_the_task(store):
+    rng = np.random.default_rng(1)
+    q = rng.normal(size=(5, SPEC.dim)).astype(np.float32)
+    task = np.array([0, 1, 2, 0, 1])
+    tokens, dist, valid = retrieval.query(store, jnp.asarray(q), jnp.asarray(task), 4)
+    keys, toks, tasks = map(np.asarray, (store.keys, store.tokens, store.task))
+    for b in range(5):
+        d = ((keys - q[b]) ** 2).sum(-1)
+        d[tasks != task[b]] = np.inf
+        order = np.argsort(d)[:4]
+        np.testing.assert_allclose(np.asarray(dist[b]), d[order], rtol=1e-4, atol=1e-3)
+        np.testing.assert_array_equal(np.asarray(tokens[b]), toks[order])
+        assert bool(valid[b].all())
+
+
+def test_queries_never_match_other_tasks_and_invalid_slots_are_masked(store):
+    q = jnp.zeros((1, SPEC.dim))
+    n_task0 = int((np.asarray(store.task) == 0).sum())
+    _, dist, valid = retrieval.query(store, q, jnp.array([0]), n_task0 + 3)
+    assert int(valid.sum()) == n_task0 and not bool(valid[0, -1])
+    _, _, valid = retrieval.query(store, q, jnp.array([7]), 4)  # a task with no entries
+    assert not bool(valid.any())
+    _, _, near = retrieval.query(store, q, jnp.array([0]), 4, max_dist=0.0)
+    assert not bool(near.any())
+
+
+def test_save_load_round_trip_and_refusals(store, tmp_path):
+    path = tmp_path / "ds"
+    retrieval.save(path, store, SPEC, TOK, "abc")
+    loaded, spec, meta = retrieval.load(path, TOK, "abc")
+    assert spec == SPEC and meta["size"] == store.size
+    np.testing.assert_array_equal(np.asarray(loaded.tokens), np.asarray(store.tokens))
+    np.testing.assert_allclose(np.asarray(loaded.keys), np.asarray(store.keys))
+    with pytest.raises(ValueError, match="another target"):
+        retrieval.load(path, TOK, "xyz")
+    with pytest.raises(ValueError, match="another action tokenizer"):
+        retrieval.load(path, ActionTokenizer((-2.0,) * 7, (2.0,) * 7, 300), "abc")
+    (path / "datastore.npz").write_bytes((path / "datastore.npz").read_bytes()[:100])
+    with pytest.raises(ValueError, match="cannot read"):
+        retrieval.load(path, TOK, "abc")
+    with pytest.raises(ValueError, match="no readable datastore"):
+        retrieval.load(tmp_path / "none", TOK, "abc")
