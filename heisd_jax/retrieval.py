@@ -81,6 +81,25 @@ def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
                      tokens=jnp.asarray(np.concatenate(tokens), jnp.int32), task=jnp.asarray(np.concatenate(task)))
 
 
+def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenizer,
+                     episodes: list[int] | None = None) -> Datastore:
+    """A datastore of a demos dataset (envs.demos), keyed by global task index."""
+    from envs import demos, tasks as tasks_lib  # noqa: PLC0415
+
+    ds = demos.DemoDataset(path)
+    names = [t.name for t in tasks_lib.ALL_TASKS]
+    idx = range(len(ds)) if episodes is None else episodes
+
+    def gen():
+        for i in idx:
+            task = ds.episodes[i]["task"]
+            if task not in names:
+                raise ValueError(f"{path}: episode {i} has unknown task {task!r}")
+            ep = ds.episode(i)
+            yield names.index(task), np.asarray(ep["action"], np.float32), np.asarray(ep["proprio"], np.float32)
+    return build(spec, tok, gen())
+
+
 def query(store: Datastore, keys: jnp.ndarray, task: jnp.ndarray, n: int, max_dist: float = jnp.inf):
     """Exact kNN within the query's task. keys [B, dim], task [B] -> (candidate tokens
     [B, n, 7], squared distances [B, n], valid [B, n])."""

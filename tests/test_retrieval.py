@@ -71,3 +71,23 @@ def test_save_load_round_trip_and_refusals(store, tmp_path):
         retrieval.load(path, TOK, "abc")
     with pytest.raises(ValueError, match="no readable datastore"):
         retrieval.load(tmp_path / "none", TOK, "abc")
+
+
+def test_build_from_demos_keys_each_step_by_its_history(tmp_path):
+    from envs import demos, tasks as tasks_lib
+
+    rng = np.random.default_rng(2)
+    n = 6
+    w = demos.DatasetWriter(tmp_path / "d", {"image_size": 4})
+    steps = dict(image=np.zeros((2 * n, 4, 4, 3), np.uint8), proprio=rng.normal(size=(2 * n, 8)).astype(np.float32),
+                 action=rng.uniform(-1, 1, (2 * n, 7)).astype(np.float32), ee_vel=np.zeros((2 * n, 3), np.float32),
+                 ee_ang_vel=np.zeros((2 * n, 3), np.float32), ee_acc=np.zeros((2 * n, 3), np.float32),
+                 gripper_vel=np.zeros(2 * n, np.float32))
+    w.add_shard(steps, [dict(task="lift_blue_cylinder", instruction="x", start=i * n, length=n) for i in range(2)])
+    store = retrieval.build_from_demos(w.finalize(), SPEC, TOK)
+    assert store.size == 2 * n
+    assert set(np.asarray(store.task).tolist()) == {[t.name for t in tasks_lib.ALL_TASKS].index("lift_blue_cylinder")}
+    keys = np.asarray(store.keys)
+    np.testing.assert_array_equal(keys[n, :14], 0)  # first step of the second episode: no history
+    np.testing.assert_allclose(keys[n + 2, :14], steps["action"][n:n + 2].reshape(-1), rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(store.tokens), np.asarray(TOK.encode(jnp.asarray(steps["action"]))))

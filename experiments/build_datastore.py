@@ -1,0 +1,45 @@
+"""Builds HeiSD's retrieval datastore from demonstrations, for the target checkpoint.
+
+  python -m experiments.build_datastore --demos=data/demos --out=checkpoints/datastore
+
+Keys: the last --history actions and the proprio vector; values: the next action's tokens
+under the target's tokenizer (heisd_jax/retrieval.py). The datastore records the target's
+fingerprint and is refused for any other target. An existing --out is replaced only once
+the new one is complete, and only with --overwrite.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from heisd_jax import checkpoint, retrieval, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Target VLA checkpoint (tokenizer, fingerprint).")
+flags.DEFINE_string("out", "checkpoints/datastore", "Output directory.")
+flags.DEFINE_integer("history", 2, "Previous actions in each key.")
+flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")
+flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    if Path(FLAGS.out).exists() and not FLAGS.overwrite:
+        raise app.UsageError(f"{FLAGS.out} exists; pass --overwrite to replace it (only once the new one is complete)")
+    if FLAGS.history < 0 or FLAGS.pos_scale <= 0:
+        raise app.UsageError("--history must be >= 0 and --pos_scale > 0")
+    params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
+    store = retrieval.build_from_demos(FLAGS.demos, spec, tok)
+    retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params), extra={"demos": str(FLAGS.demos)})
+    size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())
+    print(f"datastore: {store.size} entries, key dim {spec.dim}, {size / 2**20:.1f} MiB -> {FLAGS.out}")
+
+
+if __name__ == "__main__":
+    app.run(main)
