@@ -35,7 +35,10 @@ def main(argv):
         raise app.UsageError("--history must be >= 0 and --pos_scale > 0")
     params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
-    store = retrieval.build_from_demos(FLAGS.demos, spec, tok)
+    try:
+        store = retrieval.build_from_demos(FLAGS.demos, spec, tok)
+    except (FileNotFoundError, ValueError) as e:
+        raise app.UsageError(str(e)) from e
     retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params), extra={"demos": str(FLAGS.demos)})
     size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())
     print(f"datastore: {store.size} entries, key dim {spec.dim}, {size / 2**20:.1f} MiB -> {FLAGS.out}")
