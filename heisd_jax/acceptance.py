@@ -1,0 +1,67 @@
+"""HeiSD's sequence-wise relaxed acceptance and verify-skip (HEISD.md sections 4-5; the rules
+are our design). Token-wise rules (strict, token_relaxed) live in `spec_decode.accept`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+
+from heisd_jax.tokenizer import ACTION_DIM, N_BINS
+
+GRIPPER_DIM = ACTION_DIM - 1
+
+
+@dataclasses.dataclass(frozen=True)
+class SeqRelaxedConfig:
+    r_max: int = 15  # no token further than this from the target's bin
+    r_seq: int = 7 * 6  # bound on the weighted cumulative bin distance of the accepted prefix
+    weights: tuple[float, ...] = (1.0,) * ACTION_DIM
+
+    def __post_init__(self):
+        if not 0 <= self.r_max < N_BINS or self.r_seq < 0:
+            raise ValueError(f"need 0 <= r_max < {N_BINS} and r_seq >= 0, got {self.r_max}, {self.r_seq}")
+        if len(self.weights) != ACTION_DIM or any(w < 0 for w in self.weights):
+            raise ValueError(f"weights need {ACTION_DIM} non-negative entries, got {self.weights}")
+
+
+def gripper_closed(bins: jnp.ndarray) -> jnp.ndarray:
+    return bins >= N_BINS // 2
+
+
+def seq_relaxed_length(draft_bins: jnp.ndarray, target_bins: jnp.ndarray, cfg: SeqRelaxedConfig) -> jnp.ndarray:
+    """Accepted prefix length [...] of a drafted action [..., 7] against the target's greedy
+    bins [..., 7] (each conditioned on the draft prefix before it): the longest j with
+    sum_{i<j} w_i |d_i - t_i| <= r_seq, every |d_i - t_i| <= r_max, and the gripper token
+    agreeing on open/closed."""
+    diff = jnp.abs(draft_bins - target_bins)
+    ok = (diff <= cfg.r_max) & (jnp.cumsum(diff * jnp.asarray(cfg.weights), -1) <= cfg.r_seq)
+    grip = gripper_closed(draft_bins[..., GRIPPER_DIM]) == gripper_closed(target_bins[..., GRIPPER_DIM])
+    ok = ok.at[..., GRIPPER_DIM].set(ok[..., GRIPPER_DIM] & grip)
+    return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)
+
+
+@dataclasses.dataclass(frozen=True)
+class SkipConfig:
+    enabled: bool = True
+    eps: float = 0.05  # nearest-key squared distance under which retrieval is trusted
+    r_agree: int = 6  # the top `n_agree` candidates agree within this many bins on every token
+    n_agree: int = 3
+    k_skip: int = 3  # at most this many consecutive skipped target passes
+
+    def __post_init__(self):
+        if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.k_skip < 0:
+            raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, k_skip >= 0: {self}")
+
+
+def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand_bins: jnp.ndarray,
+             valid: jnp.ndarray, last_whole: jnp.ndarray, skips: jnp.ndarray) -> jnp.ndarray:
+    """Whether a row executes its top retrieved action without a target pass. dist [B, N]
+    squared distances, cand_bins [B, N, 7], valid [B, N], last_whole [B] (the last verified
+    retrieval action was accepted whole), skips [B] consecutive skips so far."""
+    if not cfg.enabled or cfg.k_skip == 0:
+        return jnp.zeros(in_retrieval.shape, bool)
+    top = cand_bins[:, : cfg.n_agree]
+    agree = jnp.all(jnp.abs(top - top[:, :1]) <= cfg.r_agree, axis=(1, 2)) & jnp.all(valid[:, : cfg.n_agree], 1)
+    return in_retrieval & (dist[:, 0] <= cfg.eps) & agree & last_whole & (skips < cfg.k_skip)
