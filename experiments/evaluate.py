@@ -49,7 +49,6 @@ def main(argv):
     kwargs = {}
     if FLAGS.method != "expert":
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
-        kwargs["checkpoint_path"] = FLAGS.checkpoint
     if FLAGS.method == "drafter":
         spec = dict(acceptance=FLAGS.acceptance, relax_bins=FLAGS.relax_bins, top_k=FLAGS.top_k, depth=FLAGS.depth,
                     total_tokens=FLAGS.total_tokens)
@@ -58,10 +57,10 @@ def main(argv):
         except ValueError as e:
             raise app.UsageError(str(e)) from e
         settings.update(spec, drafter=os.path.abspath(FLAGS.drafter))
-        kwargs.update(spec, drafter_path=FLAGS.drafter)
+        kwargs.update(spec)
     done = results_io.load_resumable(FLAGS.out, settings)
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
-    policy = methods.make_policy(FLAGS.method, env, **kwargs)
+    policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter, **kwargs)
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")

@@ -102,12 +102,7 @@ def _provenance() -> dict:
 def run_cell(cell: dict, task_list, progress) -> dict:
     name, settings = cell["method"], dict(cell["settings"])
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(name, True)))
-    kwargs = dict(settings)
-    if name != "expert":
-        kwargs["checkpoint_path"] = FLAGS.checkpoint
-    if name == "drafter":
-        kwargs["drafter_path"] = FLAGS.drafter
-    policy = methods.make_policy(name, env, **kwargs)
+    policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter, **settings)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     def on_batch(results, t):

@@ -24,10 +24,6 @@ from heisd_jax import vla
 from heisd_jax.tokenizer import ACTION_DIM
 
 
-def cache_slots(cfg: vla.VLAConfig) -> int:
-    return cfg.cache_slots
-
-
 def init_cache(cfg: vla.VLAConfig, batch: int) -> vla.KVCache:
     """A one-layer cache with the target's geometry."""
     return vla.init_cache(vla.VLAConfig(**{**cfg.__dict__, "n_layers": 1}), batch)
@@ -62,19 +58,24 @@ def step(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, 
     return out, cache.replace(k=k[None], v=v[None])
 
 
+def _causal_pass(dparams, cfg: vla.VLAConfig, emb, feat, key_ok):
+    """Entries 0..T-1 (emb, feat [B, T, D]) causally into a fresh drafter cache, each
+    attending to the earlier entries whose key_ok [B, T] holds, and to itself."""
+    b, t, _ = emb.shape
+    slots = jnp.arange(cfg.cache_slots)
+    slot_ok = vla._pad_to(key_ok, cfg.cache_slots)
+    mask = (vla.causal_mask(t, cfg.cache_slots)[None] & slot_ok[:, None, :]) | (slots[None, None, :] == jnp.arange(t)[None, :, None])
+    positions = jnp.broadcast_to(jnp.arange(t), (b, t))
+    out, cache = step(dparams, cfg, init_cache(cfg, b), emb, feat, positions, jnp.zeros((b,), jnp.int32), mask)
+    return out, cache.replace(key_mask=slot_ok, length=jnp.full((b,), t, jnp.int32))
+
+
 def prompt_pass(dparams, cfg: vla.VLAConfig, prompt_x, prompt_hidden, key_ok, first_token_emb):
     """The drafter's prefill: entries i = 0..P-1 read (x_{i+1}, h_i), with x_P the embedding
     of the first action token (the target's prefill choice). Returns the feature predicted
     for the first action token's position [B, D] and the cache (length P)."""
-    b, p, _ = prompt_x.shape
     emb = jnp.concatenate([prompt_x[:, 1:], first_token_emb[:, None]], 1)
-    cache = init_cache(cfg, b)
-    slot_ok = vla._pad_to(key_ok, cfg.cache_slots)
-    mask = vla.causal_mask(p, cfg.cache_slots)[None] & slot_ok[:, None, :]
-    mask = mask | (jnp.arange(cfg.cache_slots)[None, None, :] == jnp.arange(p)[None, :, None])  # always see itself
-    positions = jnp.broadcast_to(jnp.arange(p), (b, p))
-    out, cache = step(dparams, cfg, cache, emb, prompt_hidden, positions, jnp.zeros((b,), jnp.int32), mask)
-    cache = cache.replace(key_mask=slot_ok, length=jnp.full((b,), p, jnp.int32))
+    out, cache = _causal_pass(dparams, cfg, emb, prompt_hidden, key_ok)
     return out[:, -1], cache
 
 
@@ -82,20 +83,14 @@ def teacher_forced(dparams, cfg: vla.VLAConfig, x, hidden, key_ok):
     """Drafter over a whole sequence: x, hidden [B, N, D] (target input embeddings and
     last-layer states), key_ok [B, N]. Entry i reads (x_{i+1}, h_i); returns the predicted
     features of positions 1..N-1 [B, N-1, D]."""
-    b, n, _ = x.shape
-    cache = init_cache(cfg, b)
-    mask = vla.causal_mask(n - 1, cfg.cache_slots)[None] & vla._pad_to(key_ok[:, :-1], cfg.cache_slots)[:, None, :]
-    mask = mask | (jnp.arange(cfg.cache_slots)[None, None, :] == jnp.arange(n - 1)[None, :, None])
-    positions = jnp.broadcast_to(jnp.arange(n - 1), (b, n - 1))
-    out, _ = step(dparams, cfg, cache, x[:, 1:], hidden[:, :-1], positions, jnp.zeros((b,), jnp.int32), mask)
-    return out
+    return _causal_pass(dparams, cfg, x[:, 1:], hidden[:, :-1], key_ok[:, :-1])[0]
 
 
 def target_sequence(tparams, cfg: vla.VLAConfig, obs: vla.Observation, tokens):
     """The target's input embeddings, last-layer hidden states and key mask over prompt +
     the 7 action tokens [B, P+7, D] (teacher forced on `tokens`)."""
     _, hidden = vla.forward(tparams, cfg, obs, tokens)
-    _, _, prompt_x, _ = vla.prefill_features(tparams, cfg, obs)
+    prompt_x = vla.prompt_embeddings(tparams, cfg, obs)
     x = jnp.concatenate([prompt_x, vla.embed_tokens(tparams, tokens).astype(prompt_x.dtype)], 1)
     key_ok = jnp.concatenate([vla.prompt_key_mask(cfg, obs.instruction), jnp.ones(tokens.shape, bool)], 1)
     return x, hidden, key_ok

@@ -16,13 +16,17 @@ from envs.rollout import Policy
 from heisd_jax import checkpoint, spec_decode, vla_policy
 
 
+def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
+    params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
+    if cfg.image_size != env.config.camera.width or cfg.image_size != env.config.camera.height:
+        raise ValueError(f"checkpoint {checkpoint_path} expects {cfg.image_size}px images, the env renders "
+                         f"{env.config.camera.width}x{env.config.camera.height}")
+    return params, cfg, tok
+
+
 def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]:
     def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT) -> Policy:
-        params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
-        if cfg.image_size != env.config.camera.width or cfg.image_size != env.config.camera.height:
-            raise ValueError(f"checkpoint {checkpoint_path} expects {cfg.image_size}px images, the env renders "
-                             f"{env.config.camera.width}x{env.config.camera.height}")
-        return vla_policy.decoding_policy(name, params, cfg, tok, decode)
+        return vla_policy.decoding_policy(name, *_load_target(env, checkpoint_path), decode)
     return make
 
 
@@ -30,11 +34,11 @@ def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.D
                     drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER, **spec_settings) -> Policy:
     """Spec-VLA: EAGLE-2 tree drafts from the drafter, verified by the target."""
     spec = spec_decode.SpecConfig(**spec_settings)
-    params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
+    params, cfg, tok = _load_target(env, checkpoint_path)
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
-    decode = vla_policy.drafter_sd(spec)
-    return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok, decode)
+    return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
+                                      vla_policy.drafter_sd(spec))
 
 
 METHODS: dict[str, Callable[..., Policy]] = {
@@ -45,7 +49,15 @@ METHODS: dict[str, Callable[..., Policy]] = {
 USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
 
 
-def make_policy(name: str, env: TabletopEnv, **settings) -> Policy:
+CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "drafter_path")}  # what each method loads
+
+
+def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = None,
+                drafter: str | Path | None = None, **settings) -> Policy:
+    """The policy of method `name`; `checkpoint`/`drafter` (default: the shipped ones) reach
+    only the methods that load them, `settings` are the method's own options."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    return METHODS[name](env, **settings)
+    given = {"checkpoint_path": checkpoint, "drafter_path": drafter}
+    paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
+    return METHODS[name](env, **paths, **settings)

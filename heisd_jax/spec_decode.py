@@ -161,16 +161,14 @@ def verify(tparams, cfg: vla.VLAConfig, spec: SpecConfig, cache: vla.KVCache, ro
     """One target pass over [root, tree nodes sel] and the acceptance of the best path."""
     b, n = sel.shape
     d = spec.depth
-    take = lambda a: jnp.take_along_axis(a, sel, 1)
-    sel_bins, sel_depth = take(tree.bins), tree.depth[sel]
     block, depth, intra = tree_block(cfg, root, tree, sel)
-    anc = intra[:, 1:, 1:]
+    sel_bins, sel_depth, anc = block[:, 1:] - cfg.first_action_id, depth[:, 1:], intra[:, 1:, 1:]
     logits, hidden, vcache = vla.decode(tparams, cfg, cache, block, depth, intra)
     greedy = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B, 1+n] bins
 
     # Block position of each node's parent: 0 for the root, else 1 + its index in sel.
     pos_of = jnp.zeros(tree.bins.shape, jnp.int32).at[jnp.arange(b)[:, None], sel].set(1 + jnp.arange(n))
-    par = take(tree.parent)
+    par = jnp.take_along_axis(tree.parent, sel, 1)
     par_block = jnp.where(par < 0, 0, jnp.take_along_axis(pos_of, jnp.maximum(par, 0), 1))
     ok = accept(spec, sel_bins, jnp.take_along_axis(greedy, par_block, 1))  # [B, n]
     path_ok = jnp.all(~anc | ok[:, None, :], -1)  # every ancestor (and itself) accepted

@@ -294,6 +294,11 @@ def commit(cache: KVCache, src: jnp.ndarray, n: jnp.ndarray) -> KVCache:
     return KVCache(k=k, v=v, key_mask=key_mask, length=new_len.astype(jnp.int32))
 
 
+def prompt_embeddings(params, cfg: VLAConfig, obs: Observation) -> jnp.ndarray:
+    """The prompt's input embeddings [B, P, D] (vision encoder, text and proprio tokens)."""
+    return nn.apply(lambda m: m.prompt_embeddings(obs), VLA(cfg))({"params": params})
+
+
 def embed_tokens(params, tokens: jnp.ndarray) -> jnp.ndarray:
     """The target's token embeddings (a drafter reuses them, frozen)."""
     return params["embed"]["embedding"][tokens]
