@@ -207,54 +207,86 @@ def _where_rows(active, new, old):
     return tuple(pick_any(n, o) for n, o in zip(new, old))
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class DecodeState:
+    """Where a row stands in decoding one action: the target cache holds everything before
+    `root` (the last emitted token, not yet fed to the target); the drafter's cache holds the
+    same committed tokens and `feat` is its predicted feature at the root's position."""
+    cache: vla.KVCache
+    dcache: vla.KVCache
+    root: jnp.ndarray  # [B] token id
+    feat: jnp.ndarray  # [B, D]
+    out: jnp.ndarray  # [B, 7 + slack] emitted token ids (valid: j < n_out)
+    n_out: jnp.ndarray  # [B] tokens emitted so far
+    stats: dict  # per-row float counters
+
+
+def start(tparams, dparams, cfg: vla.VLAConfig, logits, hidden, prompt_x, cache, obs: vla.Observation,
+          first: jnp.ndarray | None = None, slack: int = ACTION_DIM) -> DecodeState:
+    """The state after a prefill (its last logits, prompt hidden states, embeddings and
+    cache): the first token is the target's greedy choice (or `first` [B], an accepted
+    draft), the drafter reads the prompt. One target pass and one drafter pass so far."""
+    b = logits.shape[0]
+    root = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id if first is None else first
+    feat, dcache = drafter.prompt_pass(dparams, cfg, prompt_x, hidden, vla.prompt_key_mask(cfg, obs.instruction),
+                                       vla.embed_tokens(tparams, root))
+    out = jnp.zeros((b, ACTION_DIM + slack), jnp.int32).at[:, 0].set(root)
+    stats = {"target_passes": jnp.ones((b,), jnp.float32), "drafter_passes": jnp.ones((b,), jnp.float32),
+             "rounds": jnp.zeros((b,), jnp.float32)}
+    return DecodeState(cache=cache, dcache=dcache, root=root, feat=feat, out=out, n_out=jnp.ones((b,), jnp.int32),
+                       stats=stats)
+
+
+def advance(tparams, dparams, cfg: vla.VLAConfig, s: DecodeState, v: Verified) -> DecodeState:
+    """Emits a verified path and its bonus token, and feeds the committed tokens to the
+    drafter: entries (embedding of the next token, target hidden) for root + path, the last
+    valid one (reading the bonus token) predicting the feature of the next root. Rows
+    holding all 7 tokens are left unchanged; stats are not touched."""
+    b, n = v.tokens.shape  # n = longest path + 1
+    active = s.n_out < ACTION_DIM
+    j = jnp.arange(n)[None]
+    dst = jnp.where(j <= v.n_accepted[:, None], s.n_out[:, None] + j, s.out.shape[1])  # out of range: dropped
+    out = s.out.at[jnp.arange(b)[:, None], dst].set(v.tokens, mode="drop")
+    n_out = jnp.minimum(s.n_out + 1 + v.n_accepted, ACTION_DIM)
+    dcache = s.dcache
+    slots = jnp.arange(cfg.cache_slots)
+    rel = slots[None] - dcache.length[:, None]
+    causal = (rel[:, None, :] >= 0) & (rel[:, None, :] <= j[..., None])  # [B, n, S]
+    mask = (dcache.key_mask & (rel < 0))[:, None, :] | causal
+    feats, dc = drafter.step(dparams, cfg, dcache, vla.embed_tokens(tparams, v.tokens), v.hidden,
+                             dcache.length[:, None] + j, dcache.length, mask)
+    new_len = dcache.length + 1 + v.n_accepted
+    dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)
+    feat = jnp.take_along_axis(feats, v.n_accepted[:, None, None], 1)[:, 0]
+    root = jnp.take_along_axis(v.tokens, v.n_accepted[:, None], 1)[:, 0]
+    new = (v.cache, dc, root, feat, out, n_out)
+    old = (s.cache, s.dcache, s.root, s.feat, s.out, s.n_out)
+    cache, dcache, root, feat, out, n_out = _where_rows(active, new, old)
+    return DecodeState(cache=cache, dcache=dcache, root=root, feat=feat, out=out, n_out=n_out, stats=s.stats)
+
+
+def rounds(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
+    """Draft-verify rounds until every row holds 7 tokens (a `lax.while_loop`)."""
+    def body(s):
+        active = (s.n_out < ACTION_DIM).astype(jnp.float32)
+        tree = draft_tree(dparams, tparams, cfg, spec, s.dcache, s.feat)
+        v = verify(tparams, cfg, spec, s.cache, s.root, tree, select_nodes(tree, spec.total_tokens))
+        s = advance(tparams, dparams, cfg, s, v)
+        stats = {**s.stats, "target_passes": s.stats["target_passes"] + active,
+                 "drafter_passes": s.stats["drafter_passes"] + spec.depth * active,
+                 "rounds": s.stats["rounds"] + active}
+        return dataclasses.replace(s, stats=stats)
+
+    return jax.lax.while_loop(lambda s: jnp.any(s.n_out < ACTION_DIM), body, s)
+
+
 def spec_decode(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, obs: vla.Observation):
     """Speculative decoding of one action per row. Returns action token ids [B, 7] and
     per-row stats: target_passes, drafter_passes, tokens (= 7), rounds."""
     spec.check_fits(cfg)
-    b = obs.image.shape[0]
-    d = spec.depth
     logits, hidden, prompt_x, cache = vla.prefill_features(tparams, cfg, obs)
-    root = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id
-    feat, dcache = drafter.prompt_pass(dparams, cfg, prompt_x, hidden, vla.prompt_key_mask(cfg, obs.instruction),
-                                       vla.embed_tokens(tparams, root))
-    out = jnp.zeros((b, ACTION_DIM + d + 1), jnp.int32).at[:, 0].set(root)
-    n_out = jnp.ones((b,), jnp.int32)
-    stats = {"target_passes": jnp.ones((b,), jnp.float32), "drafter_passes": jnp.ones((b,), jnp.float32),
-             "rounds": jnp.zeros((b,), jnp.float32)}
-
-    def cond(c):
-        return jnp.any(c[5] < ACTION_DIM)
-
-    def body(c):
-        cache, dcache, root, feat, out, n_out, stats = c
-        active = n_out < ACTION_DIM
-        tree = draft_tree(dparams, tparams, cfg, spec, dcache, feat)
-        v = verify(tparams, cfg, spec, cache, root, tree, select_nodes(tree, spec.total_tokens))
-        # Emit the path and the bonus.
-        j = jnp.arange(d + 1)[None]
-        dst = jnp.where(j <= v.n_accepted[:, None], n_out[:, None] + j, out.shape[1])  # out of range: dropped
-        new_out = out.at[jnp.arange(b)[:, None], dst].set(v.tokens, mode="drop")
-        new_n = n_out + 1 + v.n_accepted
-        # Drafter update: entries (emb(next token), target hidden) for root + path; the last
-        # valid one (reading the bonus token) predicts the feature of the next root.
-        slots = jnp.arange(cfg.cache_slots)
-        rel = slots[None] - dcache.length[:, None]
-        prefix = dcache.key_mask & (rel < 0)
-        causal = (rel[:, None, :] >= 0) & (rel[:, None, :] <= j[..., None])  # [B, d+1, S]
-        mask = prefix[:, None, :] | causal
-        positions = dcache.length[:, None] + j
-        feats, dc = drafter.step(dparams, cfg, dcache, vla.embed_tokens(tparams, v.tokens), v.hidden, positions,
-                                 dcache.length, mask)
-        new_len = dcache.length + 1 + v.n_accepted
-        dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)
-        new_feat = jnp.take_along_axis(feats, v.n_accepted[:, None, None], 1)[:, 0]
-        new_root = jnp.take_along_axis(v.tokens, v.n_accepted[:, None], 1)[:, 0]
-        inc = active.astype(jnp.float32)
-        new_stats = {"target_passes": stats["target_passes"] + inc, "drafter_passes": stats["drafter_passes"] + d * inc,
-                     "rounds": stats["rounds"] + inc}
-        new = (v.cache, dc, new_root, new_feat, new_out, new_n)
-        return (*_where_rows(active, new, (cache, dcache, root, feat, out, n_out)), new_stats)
-
-    c = jax.lax.while_loop(cond, body, (cache, dcache, root, feat, out, n_out, stats))
-    stats = dict(c[6], tokens=jnp.full((b,), ACTION_DIM, jnp.float32))
-    return c[4][:, :ACTION_DIM], stats
+    s = rounds(tparams, dparams, cfg, spec, start(tparams, dparams, cfg, logits, hidden, prompt_x, cache, obs,
+                                                  slack=spec.depth + 1))
+    b = logits.shape[0]
+    return s.out[:, :ACTION_DIM], dict(s.stats, tokens=jnp.full((b,), ACTION_DIM, jnp.float32))

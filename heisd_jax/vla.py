@@ -238,20 +238,48 @@ def prefill_features(params, cfg: VLAConfig, obs: Observation):
     """Like `prefill`, also returning what a feature-level drafter reads: the last-layer
     hidden states of every prompt position [B, P, D] and the prompt's input embeddings
     [B, P, D]. Returns (last logits [B, V], hidden [B, P, D], embeddings, cache)."""
+    logits, hidden, x, cache = _prefill(params, cfg, obs, None)
+    return logits[:, cfg.prompt_len - 1], hidden, x, cache
+
+
+def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, depth: jnp.ndarray,
+                       intra: jnp.ndarray):
+    """The prompt and a block of T draft tokens [B, T] in ONE pass (verification fused into
+    the prefill). The block is laid out as `decode` lays it out after a prefill: depth [B, T]
+    = position offset from the prompt's end, intra [B, T, T] = which block tokens each may
+    attend to (besides the whole prompt). Returns (last prompt logits [B, V], prompt hidden
+    [B, P, D], prompt embeddings, block logits [B, T, V], block hidden [B, T, D], cache);
+    the cache holds the prompt (length P) and the block's keys/values uncommitted at slots
+    P..P+T-1, so `commit` keeps an accepted path exactly as after `decode`."""
+    logits, hidden, x, cache = _prefill(params, cfg, obs, (tokens, depth, intra))
+    p = cfg.prompt_len
+    return logits[:, p - 1], hidden[:, :p], x, logits[:, p:], hidden[:, p:], cache
+
+
+def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     model = VLA(cfg)
     b = obs.image.shape[0]
+    p = cfg.prompt_len
     cache = init_cache(cfg, b)
     key_ok = _pad_to(prompt_key_mask(cfg, obs.instruction), cfg.cache_slots)
-    mask = causal_mask(cfg.prompt_len, cfg.cache_slots)[None] & key_ok[:, None, :]
-    positions = jnp.broadcast_to(jnp.arange(cfg.prompt_len), (b, cfg.prompt_len))
+    mask = causal_mask(p, cfg.cache_slots)[None] & key_ok[:, None, :]
+    positions = jnp.broadcast_to(jnp.arange(p), (b, p))
+    if block is not None:
+        tokens, depth, intra = block
+        t = tokens.shape[1]
+        block_mask = key_ok[:, None, :].repeat(t, 1) | _pad_to(
+            jnp.pad(intra, ((0, 0), (0, 0), (p, 0))).reshape(b * t, p + t), cfg.cache_slots).reshape(b, t, -1)
+        mask = jnp.concatenate([mask, block_mask], 1)
+        positions = jnp.concatenate([positions, p + depth], 1)
 
     def fn(m):
         x = m.prompt_embeddings(obs)
-        return x, m.run(x, cache, positions, jnp.zeros((b,), jnp.int32), mask)
+        full = x if block is None else jnp.concatenate([x, m.embed_tokens(block[0]).astype(x.dtype)], 1)
+        return x, m.run(full, cache, positions, jnp.zeros((b,), jnp.int32), mask)
 
     x, (hidden, logits, (k, v)) = nn.apply(fn, model)({"params": params})
-    cache = KVCache(k=k, v=v, key_mask=key_ok, length=jnp.full((b,), cfg.prompt_len, jnp.int32))
-    return logits[:, -1], hidden, x, cache
+    cache = KVCache(k=k, v=v, key_mask=key_ok, length=jnp.full((b,), p, jnp.int32))
+    return logits, hidden, x, cache
 
 
 def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
