@@ -7,13 +7,16 @@ methods (drafter, retrieval, heisd) register here as they land.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Callable
 
-from envs import expert
+import numpy as np
+
+from envs import expert, tasks as tasks_lib
 from envs.env import TabletopEnv
 from envs.rollout import Policy
-from heisd_jax import checkpoint, spec_decode, vla_policy
+from heisd_jax import acceptance, checkpoint, hybrid, kinematics, retrieval, spec_decode, vla_policy
 
 
 def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
@@ -41,23 +44,136 @@ def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.D
                                       vla_policy.drafter_sd(spec))
 
 
+SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}
+HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bins": int, "n_candidates": int,
+                   "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
+                   "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int}
+# Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
+# token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance.
+HYBRID_DEFAULTS = {
+    "retrieval": {"mode": "retrieval", "retrieval_acceptance": "token_relaxed", "skip": False,
+                  "acceptance": "token_relaxed", "relax_bins": 9},
+    "heisd": {"mode": "hybrid", "retrieval_acceptance": "seq_relaxed", "skip": True,
+              "acceptance": "token_relaxed", "relax_bins": 9},
+}
+BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
+
+
+def _cast(key: str, value, kind):
+    if kind is bool and isinstance(value, str):
+        if value.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"setting {key}={value!r} is not a boolean (true/false)")
+        return value.lower() in ("true", "1")
+    try:
+        return kind(value)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"setting {key}={value!r} is not a {kind.__name__}") from e
+
+
+def check_settings(name: str, settings: dict) -> dict:
+    """A method's settings, typed and validated (a clear error naming the valid keys and
+    values), before anything loads or compiles."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
+    valid = {"drafter": SPEC_SETTINGS, "retrieval": {**SPEC_SETTINGS, **HYBRID_SETTINGS},
+             "heisd": {**SPEC_SETTINGS, **HYBRID_SETTINGS}}.get(name)
+    if name == "expert":
+        return dict(settings)
+    if valid is None:
+        if settings:
+            raise ValueError(f"method {name!r} takes no settings, got {settings}")
+        return {}
+    unknown = sorted(set(settings) - set(valid))
+    if unknown:
+        raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(valid)}")
+    out = {k: _cast(k, v, valid[k]) for k, v in settings.items()}
+    if name == "drafter":
+        spec_decode.SpecConfig(**out)
+    else:
+        hybrid_config(name, out)
+    return out
+
+
+def hybrid_config(name: str, settings: dict, calibration: dict | None = None) -> hybrid.HybridConfig:
+    """The HybridConfig of method `name` (retrieval, heisd) from flat settings over the
+    method's defaults and the datastore's calibration (metric scales, thresholds)."""
+    s = {**HYBRID_DEFAULTS[name], **settings}
+    if s["acceptance"] == "strict":  # lossless unless asked otherwise
+        for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
+            if key not in settings:
+                s[key] = value
+    cal = calibration or {}
+    spec = spec_decode.SpecConfig(**{k: s[k] for k in SPEC_SETTINGS if k in s})
+    seq = acceptance.SeqRelaxedConfig(**{k: s[k] for k in ("r_max", "r_seq") if k in s})
+    skip_defaults = acceptance.SkipConfig()
+    skip = acceptance.SkipConfig(enabled=s["skip"], k_skip=s.get("k_skip", skip_defaults.k_skip),
+                                 eps=s.get("skip_eps", cal.get("skip_eps", skip_defaults.eps)),
+                                 r_agree=s.get("r_agree", skip_defaults.r_agree))
+    metric = kinematics.MetricConfig(scales=tuple(cal.get("metric_scales", kinematics.MetricConfig().scales)))
+    bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if k in s}}
+    return hybrid.HybridConfig(
+        spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"],
+        relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
+        n_candidates=s.get("n_candidates", 4), max_dist=s.get("max_dist", float("inf")),
+        verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd))
+
+
+def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
+    """Metric scales (from the datastore build) and boundary thresholds (from
+    experiments.calibrate_boundary, if it ran) of a datastore."""
+    cal = {}
+    if "metric_scales" in meta:
+        cal["metric_scales"] = meta["metric_scales"]
+    f = Path(datastore_path) / BOUNDARY_FILE
+    if f.exists():
+        b = json.loads(f.read_text())
+        cal["boundary"] = {k: b[k] for k in ("tau_on", "tau_off", "min_dwell") if k in b}
+        if "skip_eps" in b:
+            cal["skip_eps"] = b["skip_eps"]
+    return cal
+
+
+def _hybrid_method(name: str):
+    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
+             drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER,
+             datastore_path: str | Path = vla_policy.DEFAULT_DATASTORE, **settings) -> Policy:
+        settings = check_settings(name, settings)
+        params, cfg, tok = _load_target(env, checkpoint_path)
+        dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
+        store, key_spec, meta = retrieval.load(datastore_path, tok, checkpoint.fingerprint(params))
+        missing = sorted(set(env.global_index.tolist()) - set(np.unique(np.asarray(store.task)).tolist()))
+        if missing:
+            raise ValueError(f"datastore {datastore_path} has no entries for tasks "
+                             f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
+        hcfg = hybrid_config(name, settings, load_calibration(datastore_path, meta))
+        hcfg.check_fits(cfg)
+        return vla_policy.hybrid_policy(name, {"target": params, "drafter": dparams, "store": store}, cfg, tok, hcfg,
+                                        key_spec, env.global_index)
+    make.__doc__ = f"`{name}`: retrieval drafts (datastore) and drafter SD (see heisd_jax.hybrid)."
+    return make
+
+
 METHODS: dict[str, Callable[..., Policy]] = {
     "expert": lambda env, **kw: expert.policy(env, expert.ExpertConfig(**kw)),
     "ar": _vla_method("ar", vla_policy.ar),
     "drafter": _drafter_method,
+    "retrieval": _hybrid_method("retrieval"),
+    "heisd": _hybrid_method("heisd"),
 }
 USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
 
 
-CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "drafter_path")}  # what each method loads
+CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "drafter_path"),
+               "retrieval": ("checkpoint_path", "drafter_path", "datastore_path"),
+               "heisd": ("checkpoint_path", "drafter_path", "datastore_path")}  # what each method loads
 
 
 def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = None,
-                drafter: str | Path | None = None, **settings) -> Policy:
+                drafter: str | Path | None = None, datastore: str | Path | None = None, **settings) -> Policy:
     """The policy of method `name`; `checkpoint`/`drafter` (default: the shipped ones) reach
     only the methods that load them, `settings` are the method's own options."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    given = {"checkpoint_path": checkpoint, "drafter_path": drafter}
+    given = {"checkpoint_path": checkpoint, "drafter_path": drafter, "datastore_path": datastore}
     paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
     return METHODS[name](env, **paths, **settings)

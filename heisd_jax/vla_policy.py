@@ -21,6 +21,7 @@ from heisd_jax.tokenizer import ActionTokenizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
 DEFAULT_DRAFTER = Path(__file__).resolve().parents[1] / "checkpoints" / "drafter"
+DEFAULT_DATASTORE = Path(__file__).resolve().parents[1] / "checkpoints" / "datastore"
 
 DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, Stats]]
 
@@ -54,3 +55,24 @@ def drafter_sd(spec):
     def decode(params, cfg, obs):
         return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)
     return decode
+
+
+def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, hcfg, key_spec,
+                  global_task_index) -> Policy:
+    """The HeiSD step (`heisd_jax.hybrid`) as a policy. params: {"target", "drafter",
+    "store"}; global_task_index [n_tasks]: the datastore's task index of each env task."""
+    from heisd_jax import hybrid  # noqa: PLC0415
+
+    gidx = jnp.asarray(global_task_index, jnp.int32)
+
+    def init(params, states):
+        return hybrid.init_state(states.step.shape[0], key_spec)
+
+    def act(params, states, pstate, keys):
+        kin = hybrid.Kinematics(lin_vel=states.kin.lin_vel, ang_vel=states.kin.ang_vel, lin_acc=states.kin.lin_acc,
+                                gripper_vel=states.kin.gripper_vel)
+        actions, _, pstate, stats = hybrid.step(params, cfg, hcfg, key_spec, tok, pstate, observation(states), kin,
+                                                gidx[states.info.task_id])
+        return actions, pstate, stats
+
+    return Policy(name=name, init=init, act=act, params=params)

@@ -1,0 +1,270 @@
+"""The HeiSD decode step: retrieval drafts or drafter trees, chosen per env by the kinematic
+boundary, batched and jitted (HEISD.md section 7).
+
+Per env and control step (`step`):
+  1. kinematics: the fused metric M from the end-effector's MJX kinematics and the
+     hysteresis boundary choose the mode (retrieval for smooth transport, drafter for fine
+     manipulation). Published: a kinematic metric decides; the formula is our design
+     (`heisd_jax.kinematics`).
+  2. retrieval: the env's key (recent actions, proprio) queries the datastore for
+     `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`).
+  3. verify-skip (our rule, `rules.may_skip`): a confident retrieval-mode row executes
+     its top candidate with no target pass, at most `k_skip` times in a row.
+  4. one target pass for the other rows (`decode`): the prompt prefill, with the candidates'
+     tokens appended as parallel chains under a tree mask (`verify="prefill"`: verification
+     fused into the prefill, one pass) or checked in a second pass (`verify="separate"`).
+     A row's best candidate keeps its accepted prefix under the retrieval acceptance rule
+     (`strict`, `token_relaxed`, or HeiSD's sequence-wise `seq_relaxed`); the target's
+     greedy token follows as the bonus; the rest of the action is decoded by drafter rounds
+     (Spec-VLA), as for drafter-mode rows, which start from the prefill alone.
+Rows that need no target pass (skipped) are masked, and the target call itself is skipped
+(`lax.cond`) when no row in the batch needs it.
+
+With `strict` acceptance everywhere and verify-skip off (`HybridConfig.lossless`), the
+tokens equal greedy AR decoding for any inputs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from heisd_jax import acceptance as rules, kinematics, retrieval, spec_decode, vla
+from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
+
+MODES = ("hybrid", "retrieval", "drafter")  # hybrid: kinematic boundary; else every step in that mode
+RETRIEVAL_ACCEPTANCE = ("strict", "token_relaxed", "seq_relaxed")
+VERIFY = ("prefill", "separate")
+
+
+def _check(name, value, valid):
+    if value not in valid:
+        raise ValueError(f"unknown {name} {value!r}; valid: {', '.join(valid)}")
+
+
+@dataclasses.dataclass(frozen=True)
+class HybridConfig:
+    spec: spec_decode.SpecConfig = spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=9)  # drafter SD
+    mode: str = "hybrid"
+    acceptance: str = "seq_relaxed"  # rule for retrieval drafts
+    relax_bins: int = 9  # token_relaxed on retrieval drafts
+    seq: rules.SeqRelaxedConfig = rules.SeqRelaxedConfig()
+    n_candidates: int = 4
+    max_dist: float = float("inf")  # candidates with a squared key distance above this are invalid
+    verify: str = "prefill"
+    skip: rules.SkipConfig = rules.SkipConfig()
+    metric: kinematics.MetricConfig = kinematics.MetricConfig()
+    boundary: kinematics.BoundaryConfig = kinematics.BoundaryConfig()
+
+    def __post_init__(self):
+        _check("mode", self.mode, MODES)
+        _check("retrieval acceptance", self.acceptance, RETRIEVAL_ACCEPTANCE)
+        _check("verify", self.verify, VERIFY)
+        if self.n_candidates < 1:
+            raise ValueError(f"n_candidates must be >= 1, got {self.n_candidates}")
+        if not 0 <= self.relax_bins < 256:
+            raise ValueError(f"relax_bins must be in 0..255, got {self.relax_bins}")
+        if self.max_dist <= 0:
+            raise ValueError(f"max_dist must be > 0, got {self.max_dist}")
+        if self.acceptance == "strict" and self.skip.enabled and self.mode != "drafter":
+            raise ValueError("verify-skip executes unverified actions: with strict (lossless) retrieval acceptance, "
+                             "switch skip off")
+
+    @property
+    def lossless(self) -> bool:
+        """Tokens identical to greedy AR decoding."""
+        uses_retrieval = self.mode != "drafter"
+        return self.spec.acceptance == "strict" and (
+            not uses_retrieval or (self.acceptance == "strict" and not self.skip.enabled))
+
+    def check_fits(self, cfg: vla.VLAConfig):
+        self.spec.check_fits(cfg)
+        need = cfg.prompt_len + self.n_candidates * (ACTION_DIM - 1)
+        if need > cfg.cache_slots:
+            raise ValueError(f"{self.n_candidates} retrieval candidates need {need} cache slots, the model has "
+                             f"{cfg.cache_slots}; n_candidates must be <= "
+                             f"{(cfg.cache_slots - cfg.prompt_len) // (ACTION_DIM - 1)}")
+
+
+def accepted_length(hcfg: HybridConfig, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
+    """Accepted prefix length [...] of drafted actions [..., 7] against the target's greedy
+    bins [..., 7] (token i's conditioned on the draft's tokens before it)."""
+    if hcfg.acceptance == "seq_relaxed":
+        return rules.seq_relaxed_length(draft_bins, target_bins, hcfg.seq)
+    if hcfg.acceptance == "strict":
+        ok = draft_bins == target_bins
+    else:
+        ok = jnp.abs(draft_bins - target_bins) <= hcfg.relax_bins
+    return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)
+
+
+def candidate_block(cand: jnp.ndarray):
+    """Candidates [B, N, 7] (token ids) as a verification block of N parallel chains of
+    their first 6 tokens (the 7th is only checked): tokens [B, 6N], depth [B, 6N] (token i
+    of a chain at prompt end + i) and the mask [B, 6N, 6N] (causal within a chain)."""
+    b, n, _ = cand.shape
+    c = ACTION_DIM - 1
+    tokens = cand[:, :, :c].reshape(b, n * c)
+    depth = jnp.broadcast_to(jnp.tile(jnp.arange(c), n), (b, n * c))
+    intra = jnp.kron(jnp.eye(n, dtype=jnp.int32), jnp.tril(jnp.ones((c, c), jnp.int32))).astype(bool)
+    return tokens, depth, jnp.broadcast_to(intra, (b, n * c, n * c))
+
+
+def _select(mask, new, old):
+    """Per-row select between two DecodeStates."""
+    leaves = (new.cache, new.dcache, new.root, new.feat, new.out, new.n_out)
+    olds = (old.cache, old.dcache, old.root, old.feat, old.out, old.n_out)
+    cache, dcache, root, feat, out, n_out = spec_decode._where_rows(mask, leaves, olds)
+    stats = {k: jnp.where(mask, new.stats[k], old.stats[k]) for k in new.stats}
+    return spec_decode.DecodeState(cache=cache, dcache=dcache, root=root, feat=feat, out=out, n_out=n_out, stats=stats)
+
+
+STAT_KEYS = ("target_passes", "drafter_passes", "rounds", "tokens", "retrieval_verified", "retrieval_accepted",
+             "retrieval_whole", "skipped")
+
+
+def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
+           cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray, skip: jnp.ndarray):
+    """One action per row. params: {"target", "drafter"}; cand [B, N, 7] retrieved token
+    ids, cand_valid [B, N]; use_retrieval [B]: verify the candidates (else drafter SD from
+    the prefill); skip [B]: execute cand[:, 0] without a target pass. Returns token ids
+    [B, 7] and per-row stats (STAT_KEYS): target/drafter passes, rounds, tokens, whether the
+    retrieval draft was verified, its accepted length and whether it was accepted whole,
+    whether the row skipped."""
+    tp, dp = params["target"], params["drafter"]
+    b, n, _ = cand.shape
+    c = ACTION_DIM - 1
+    verify_rows = use_retrieval & ~skip
+    first_id = cfg.first_action_id
+
+    def with_target(_):
+        block = candidate_block(cand)
+        zeros_blk = (jnp.zeros((b, n * c, cfg.vocab_size), jnp.float32), jnp.zeros((b, n * c, cfg.d_model), cfg.dtype))
+        if hcfg.verify == "prefill":
+            def fused(_):
+                lg, h, x, blg, bh, cache = vla.prefill_with_block(tp, cfg, obs, *block)
+                return lg, h, x, blg, bh.astype(cfg.dtype), cache
+
+            def plain(_):
+                lg, h, x, cache = vla.prefill_features(tp, cfg, obs)
+                return (lg, h, x, *zeros_blk, cache)
+            logits, hidden, x, blogits, bhidden, cache = jax.lax.cond(jnp.any(verify_rows), fused, plain, None)
+            passes = jnp.ones((b,), jnp.float32)
+        else:
+            logits, hidden, x, cache = vla.prefill_features(tp, cfg, obs)
+
+            def separate(cache):
+                blg, bh, cache = vla.decode(tp, cfg, cache, *block)
+                return blg, bh.astype(cfg.dtype), cache
+            blogits, bhidden, cache = jax.lax.cond(jnp.any(verify_rows), separate, lambda cache: (*zeros_blk, cache),
+                                                   cache)
+            passes = 1.0 + verify_rows.astype(jnp.float32)
+
+        greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
+        node_greedy = jnp.argmax(vla.action_logits(cfg, blogits), -1).reshape(b, n, c)
+        target_bins = jnp.concatenate([jnp.broadcast_to(greedy1[:, None, None], (b, n, 1)), node_greedy], -1)
+        length = accepted_length(hcfg, cand - first_id, target_bins)
+        length = jnp.where(cand_valid & verify_rows[:, None], length, 0)
+        best = jnp.argmax(length, 1)
+        acc = jnp.max(length, 1)  # [B] 0..7
+        best_cand = jnp.take_along_axis(cand, best[:, None, None], 1)[:, 0]  # [B, 7]
+        best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
+
+        first = jnp.where(acc >= 1, best_cand[:, 0], greedy1 + first_id)
+        s0 = spec_decode.start(tp, dp, cfg, logits, hidden, x, cache, obs, first=first,
+                               slack=max(hcfg.spec.depth, ACTION_DIM) + 1)
+        # Hand an accepted retrieval prefix (tokens 1..acc) to the drafter state: token 1 is
+        # the root; tokens 2..acc are its accepted path; the bonus is the target's token acc+1.
+        i = jnp.arange(ACTION_DIM)[None]
+        n_acc = jnp.maximum(acc - 1, 0)
+        rest = jnp.concatenate([best_cand[:, 1:], jnp.zeros((b, 1), jnp.int32)], 1)  # tokens 2..7, pad
+        bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, ACTION_DIM - 1)[:, None], 1)
+        tokens = jnp.where(i == n_acc[:, None], bonus, rest)
+        chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
+        hid = jnp.take_along_axis(bhidden, chain[..., None], 1)
+        v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
+                                 hidden=hid, cache=vla.commit(cache, chain, jnp.minimum(acc, c)))
+        s1 = spec_decode.advance(tp, dp, cfg, s0, v)
+        s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
+        s = _select(acc >= 1, s1, s0)
+        s = dataclasses.replace(s, n_out=jnp.where(skip, ACTION_DIM, s.n_out))  # skipped rows are done
+        s = spec_decode.rounds(tp, dp, cfg, hcfg.spec, s)
+        out = jnp.where(skip[:, None], cand[:, 0], s.out[:, :ACTION_DIM])
+        ran = (~skip).astype(jnp.float32)
+        stats = {"target_passes": (s.stats["target_passes"] - 1.0 + passes) * ran,
+                 "drafter_passes": s.stats["drafter_passes"] * ran, "rounds": s.stats["rounds"] * ran,
+                 "retrieval_accepted": acc.astype(jnp.float32)}
+        return out, stats
+
+    def all_skipped(_):
+        z = jnp.zeros((b,), jnp.float32)
+        return cand[:, 0], {"target_passes": z, "drafter_passes": z, "rounds": z, "retrieval_accepted": z}
+
+    tokens, stats = jax.lax.cond(jnp.any(~skip), with_target, all_skipped, None)
+    verified = verify_rows.astype(jnp.float32)
+    stats.update(tokens=jnp.full((b,), ACTION_DIM, jnp.float32), retrieval_verified=verified,
+                 retrieval_whole=verified * (stats["retrieval_accepted"] == ACTION_DIM), skipped=skip.astype(jnp.float32))
+    return tokens, stats
+
+
+@struct.dataclass
+class HybridState:
+    """What the HeiSD step carries from one control step to the next, per env."""
+    prev_actions: jnp.ndarray  # [B, history, 7] executed actions, oldest first (zeros before the start)
+    prev_lin_vel: jnp.ndarray  # [B, 3] end-effector velocity at the previous step
+    boundary: kinematics.BoundaryState
+    skips: jnp.ndarray  # [B] consecutive skipped target passes
+    last_whole: jnp.ndarray  # [B] the last verified retrieval action was accepted whole
+
+
+def init_state(batch: int, key_spec: retrieval.KeySpec) -> HybridState:
+    return HybridState(prev_actions=jnp.zeros((batch, key_spec.history, ACTION_DIM), jnp.float32),
+                       prev_lin_vel=jnp.zeros((batch, 3), jnp.float32), boundary=kinematics.boundary_init((batch,)),
+                       skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool))
+
+
+@struct.dataclass
+class Kinematics:
+    """End-effector kinematics per env (from MJX: `envs.proprio.EEKinematics`)."""
+    lin_vel: jnp.ndarray  # [B, 3]
+    ang_vel: jnp.ndarray  # [B, 3]
+    lin_acc: jnp.ndarray  # [B, 3]
+    gripper_vel: jnp.ndarray  # [B]
+
+
+def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.KeySpec, tok: ActionTokenizer,
+         state: HybridState, obs: vla.Observation, kin: Kinematics, task: jnp.ndarray):
+    """One HeiSD control step for a batch of envs. params: {"target", "drafter", "store"};
+    task [B]: global task indices (the datastore's). Returns (actions [B, 7] continuous,
+    token ids [B, 7], the next state, per-row stats: `decode`'s plus the metric and the
+    mode shares)."""
+    metric = kinematics.fused_metric(
+        kinematics.features(kin.lin_vel, kin.ang_vel, kin.lin_acc, kin.gripper_vel, state.prev_lin_vel), hcfg.metric)
+    boundary = kinematics.boundary_step(state.boundary, metric, hcfg.boundary)
+    b = metric.shape[0]
+    if hcfg.mode == "hybrid":
+        use_retrieval = boundary.mode == kinematics.RETRIEVAL
+    else:
+        use_retrieval = jnp.full((b,), hcfg.mode == "retrieval")
+    keys = retrieval.make_keys(key_spec, tok, state.prev_actions, obs.proprio)
+    cand, dist, valid = retrieval.query(params["store"], keys, task, hcfg.n_candidates, hcfg.max_dist)
+    # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
+    in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
+    skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
+                               state.skips)
+    tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
+    actions = tok.decode(tokens)
+    whole = stats["retrieval_whole"] > 0
+    history = state.prev_actions
+    if history.shape[1]:
+        history = jnp.concatenate([history[:, 1:], actions[:, None].astype(jnp.float32)], 1)
+    new = HybridState(
+        prev_actions=history,
+        prev_lin_vel=kin.lin_vel.astype(jnp.float32), boundary=boundary,
+        skips=jnp.where(skip, state.skips + 1, 0),
+        last_whole=jnp.where(skip, state.last_whole, whole))
+    stats = dict(stats, metric=metric, drafter_mode=(~use_retrieval).astype(jnp.float32))
+    return actions, tokens, new, stats

@@ -1,0 +1,143 @@
+"""The HeiSD decode step: verification fused into the prefill, lossless strict mode with
+retrieval drafts (token-identical to AR, batched, rows accepting different lengths),
+verify-skip and the step's state (tiny random models on CPU)."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import acceptance, hybrid, kinematics, retrieval, spec_decode as sd, vla
+from heisd_jax.tokenizer import ActionTokenizer
+
+from test_spec_decode import CFG, _aligned_pair, _ar, _obs
+
+B = 6
+SPEC = sd.SpecConfig(top_k=2, depth=2, total_tokens=4)
+STRICT = hybrid.HybridConfig(spec=SPEC, mode="retrieval", acceptance="strict", n_candidates=3,
+                             skip=acceptance.SkipConfig(enabled=False))
+
+
+@pytest.fixture(scope="module")
+def setup():
+    tp, dp = _aligned_pair(0.35)
+    obs = _obs(7, batch=B)
+    return {"target": tp, "drafter": dp}, obs, np.asarray(_ar(tp, obs))
+
+
+def _candidates(ar_tokens, rng):
+    """Per row: candidate 0 = the AR action with its tokens from `cut` on replaced (cut 7 =
+    the AR action itself), the others random."""
+    cand = rng.integers(CFG.first_action_id, CFG.first_action_id + 256, (B, 3, 7))
+    cuts = np.array([7, 0, 3, 5, 1, 7])
+    for b, cut in enumerate(cuts):
+        cand[b, 1, :cut] = ar_tokens[b, :cut]
+        if cut < 7:
+            cand[b, 1, cut] = CFG.first_action_id + (ar_tokens[b, cut] - CFG.first_action_id + 128) % 256
+    return jnp.asarray(cand, jnp.int32), cuts
+
+
+_decode = jax.jit(hybrid.decode, static_argnums=(1, 2))
+
+
+def test_prefill_with_block_equals_prefill_then_decode(setup):
+    params, obs, ar_tokens = setup
+    tp = params["target"]
+    cand, _ = _candidates(ar_tokens, np.random.default_rng(0))
+    block = hybrid.candidate_block(cand)
+    lg, h, x, blg, bh, cache = vla.prefill_with_block(tp, CFG, obs, *block)
+    lg2, h2, x2, cache2 = vla.prefill_features(tp, CFG, obs)
+    blg2, bh2, cache2 = vla.decode(tp, CFG, cache2, *block)
+    np.testing.assert_allclose(np.asarray(lg), np.asarray(lg2), atol=2e-4)
+    np.testing.assert_allclose(np.asarray(blg), np.asarray(blg2), atol=2e-4)
+    n = CFG.prompt_len + block[0].shape[1]
+    np.testing.assert_allclose(np.asarray(cache.k[:, :, :n]), np.asarray(cache2.k[:, :, :n]), atol=2e-5)
+    np.testing.assert_array_equal(np.asarray(cache.length), np.asarray(cache2.length))
+
+
+@pytest.mark.parametrize("verify", ["prefill", "separate"])
+def test_strict_hybrid_equals_ar_token_for_token(setup, verify):
+    params, obs, ar_tokens = setup
+    cand, cuts = _candidates(ar_tokens, np.random.default_rng(1))
+    hcfg = dataclasses.replace(STRICT, verify=verify)
+    assert hcfg.lossless
+    use = jnp.array([True, True, True, True, False, True])
+    valid = jnp.ones((B, 3), bool).at[5, 1].set(False)  # row 5's exact candidate is masked out
+    tokens, stats = _decode(params, CFG, hcfg, obs, cand, valid, use, jnp.zeros((B,), bool))
+    np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+    acc = np.asarray(stats["retrieval_accepted"])
+    expect = np.where(np.asarray(use) & np.asarray(valid[:, 1]), cuts, 0)
+    assert np.all(acc >= expect) and acc[0] == 7, (acc, expect)  # random candidates may add a lucky token
+    passes = np.asarray(stats["target_passes"])
+    assert passes[0] == (1 if verify == "prefill" else 2)  # a whole action verified in one pass
+    assert np.all(passes <= 7 + (verify == "separate"))
+
+
+def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(setup):
+    params, obs, ar_tokens = setup
+    cand, _ = _candidates(ar_tokens, np.random.default_rng(2))
+    hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", skip=acceptance.SkipConfig())
+    use = jnp.ones((B,), bool)
+    skip = jnp.array([True, False, True, False, False, False])
+    valid = jnp.ones((B, 3), bool)
+    tokens, stats = _decode(params, CFG, hcfg, obs, cand, valid, use, skip)
+    np.testing.assert_array_equal(np.asarray(tokens)[[0, 2]], np.asarray(cand)[[0, 2], 0])
+    np.testing.assert_array_equal(np.asarray(stats["target_passes"])[[0, 2]], 0)
+    assert np.all(np.asarray(stats["target_passes"])[[1, 3, 4, 5]] >= 1)
+    all_skip, st = _decode(params, CFG, hcfg, obs, cand, valid, use, jnp.ones((B,), bool))  # no target call
+    np.testing.assert_array_equal(np.asarray(all_skip), np.asarray(cand)[:, 0])
+    assert float(jnp.sum(st["target_passes"])) == 0 and float(jnp.sum(st["skipped"])) == B
+
+
+def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(setup):
+    """A datastore holding each row's AR action under its own key: retrieval is perfect, so
+    skipping would fire every step; it must stop after k_skip in a row, and only while in
+    the retrieval mode. With strict acceptance and skip off, the step's tokens are AR's."""
+    params, obs, ar_tokens = setup
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    state = hybrid.init_state(B, spec)
+    keys = retrieval.make_keys(spec, tok, state.prev_actions, obs.proprio)
+    store = retrieval.Datastore(keys=jnp.repeat(keys, 3, 0), sq_norms=jnp.repeat((keys * keys).sum(-1), 3),
+                                tokens=jnp.repeat(jnp.asarray(ar_tokens), 3, 0), task=jnp.repeat(jnp.arange(B), 3))
+    p = dict(params, store=store)
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    hcfg = hybrid.HybridConfig(spec=SPEC, mode="hybrid", acceptance="seq_relaxed", n_candidates=3,
+                               skip=acceptance.SkipConfig(eps=1e-3, k_skip=2),
+                               boundary=kinematics.BoundaryConfig(tau_on=1.0, tau_off=0.5, min_dwell=1))
+    run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+    state = dataclasses.replace(state, boundary=kinematics.boundary_init((B,), kinematics.RETRIEVAL))
+    frozen = dataclasses.replace(state)
+    skipped, modes = [], []
+    for t in range(7):
+        # keep the history fixed so the key keeps matching; drafter mode (metric high) at t = 5
+        fast = jnp.full((B, 3), 3.0 if t == 5 else 0.0)
+        _, tokens, state, stats = run(p, CFG, hcfg, spec, tok, state, obs, dataclasses.replace(kin, lin_vel=fast),
+                                      jnp.arange(B))
+        state = dataclasses.replace(state, prev_actions=frozen.prev_actions, prev_lin_vel=jnp.zeros((B, 3)))
+        skipped.append(np.asarray(stats["skipped"]))
+        modes.append(np.asarray(state.boundary.mode))
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+    skipped, modes = np.array(skipped), np.array(modes)
+    assert skipped[1:3].all() and not skipped[0].any() and not skipped[3].any()  # verify, 2 skips, verify
+    assert not skipped[modes == kinematics.DRAFTER].any() and not skipped[5].any()
+    lossless = dataclasses.replace(hcfg, acceptance="strict", skip=acceptance.SkipConfig(enabled=False),
+                                   spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4))
+    _, tokens, _, stats = run(p, CFG, lossless, spec, tok, hybrid.init_state(B, spec), obs, kin, jnp.arange(B))
+    np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+
+
+def test_config_rejects_bad_settings():
+    with pytest.raises(ValueError, match="valid: hybrid, retrieval, drafter"):
+        hybrid.HybridConfig(mode="sometimes")
+    with pytest.raises(ValueError, match="valid: strict, token_relaxed, seq_relaxed"):
+        hybrid.HybridConfig(acceptance="loose")
+    with pytest.raises(ValueError, match="switch skip off"):
+        hybrid.HybridConfig(acceptance="strict")
+    with pytest.raises(ValueError, match="n_candidates must be <="):
+        hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
+    with pytest.raises(ValueError, match="tau_on > tau_off"):
+        kinematics.BoundaryConfig(tau_on=0.5, tau_off=0.8)
