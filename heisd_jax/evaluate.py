@@ -1,21 +1,22 @@
 """The batched evaluator: runs a policy on the fixed evaluation initial states of a set of
-tasks, `num_envs` episodes at a time under one jitted rollout, and aggregates success
-rates per task and suite. Progress is handed to a callback after every batch so callers
-can persist results as they complete and resume an interrupted run.
+tasks, `num_envs` episodes at a time under one jitted rollout (the env batch sharded over
+all devices, see `sharding`), and aggregates success rates per task and suite. Progress is
+handed to a callback after every batch so callers can persist results as they complete and
+resume an interrupted run.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
+from heisd_jax import sharding
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,31 +40,64 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -
     return out
 
 
+class BatchRollout:
+    """The jitted rollout of one static batch of `num_envs` episodes, sharded over `devices`
+    (default: all; the env batch is split, the policy's parameters replicated; one device:
+    a plain jit). Compiled ahead of time, so that calls time execution only."""
+
+    def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int = 0,
+                 devices: Sequence[jax.Device] | None = None):
+        self.env, self.num_envs = env, num_envs
+        self.mesh = sharding.env_mesh(devices)
+        sharding.check_batch(num_envs, self.mesh)
+        self.devices = self.mesh.size
+        self.params = sharding.replicate(self.mesh, policy.params)
+        max_steps = int(max(t.max_steps for t in env.tasks))
+        self._run = jax.jit(lambda params, k, t: rollout.run_episodes(
+            env, dataclasses.replace(policy, params=params), k, t, max_steps, seed))
+        self._compiled, self.compile_seconds = None, 0.0
+
+    def inputs(self, task_ids: np.ndarray, episodes: np.ndarray) -> tuple:
+        """Device inputs for episodes (task_ids[i], episodes[i]), both [num_envs]."""
+        if len(task_ids) != self.num_envs:
+            raise ValueError(f"expected {self.num_envs} episodes, got {len(task_ids)}")
+        keys = np.asarray(self.env.initial_state_keys(task_ids, episodes, split="eval"))  # [B, 2]
+        return (self.params, *sharding.shard_batch(self.mesh, (keys, np.asarray(task_ids, np.int32))))
+
+    def compile(self, inputs: tuple) -> None:
+        if self._compiled is None:
+            t0 = time.perf_counter()
+            self._compiled = self._run.lower(*inputs).compile()
+            self.compile_seconds = time.perf_counter() - t0
+
+    def __call__(self, inputs: tuple):
+        """Host copies of (final states, decode totals {stat: [B]}, control steps the batch loop ran)."""
+        self.compile(inputs)
+        return sharding.fetch(self._compiled(*inputs))
+
+
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
-             on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0) -> dict[str, list]:
+             on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
+             devices: Sequence[jax.Device] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
-    decode totals summed over the episode's actions (e.g. target_passes). `on_batch(results,
-    timing)` is called after every batch with everything so far; timing holds the batch's
-    wall-clock (compilation excluded, reported once as compile_seconds), its control steps
-    (iterations of the batched loop: one batched action each) and env steps."""
+    decode totals summed over the episode's actions (e.g. target_passes). The env batch is
+    sharded over `devices` (default: all; `num_envs` must be a multiple of their number).
+    `on_batch(results, timing)` is called after every batch with everything so far; timing
+    holds the batch's wall-clock (compilation excluded, reported once as compile_seconds),
+    its control steps (iterations of the batched loop: one batched action each), env steps
+    and the number of devices."""
     results = {k: list(v) for k, v in (done or {}).items()}
     todo = pending_episodes(env, cfg, results)
-    max_steps = int(max(t.max_steps for t in env.tasks))
-    run = jax.jit(lambda params, k, t: rollout.run_episodes(
-        env, dataclasses.replace(policy, params=params), k, t, max_steps, seed))
-    compiled, compile_s = None, 0.0
+    run = BatchRollout(env, policy, cfg.num_envs, seed, devices)
     for start in range(0, len(todo), cfg.num_envs):
         chunk = todo[start: start + cfg.num_envs]
         pad = chunk + [chunk[-1]] * (cfg.num_envs - len(chunk))  # static batch shape
         tids, eps = np.array(pad).T
-        args = (policy.params, env.initial_state_keys(tids, eps, split="eval"), jnp.asarray(tids, jnp.int32))
-        if compiled is None:  # ahead of time, so batch timings exclude compilation
-            t0 = time.perf_counter()
-            compiled = run.lower(*args).compile()
-            compile_s = time.perf_counter() - t0
+        inputs = run.inputs(tids, eps)
+        run.compile(inputs)  # ahead of time, so batch timings exclude compilation
         t0 = time.perf_counter()
-        final, totals, loop_steps = jax.device_get(compiled(*args))
+        final, totals, loop_steps = run(inputs)
         dt = time.perf_counter() - t0
         for i, (t, e) in enumerate(chunk):
             name = env.tasks[t].name
@@ -79,9 +113,9 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             rec[e] = {"success": bool(final.success[i]), "steps": int(final.step[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in totals.items()}}
         if on_batch is not None:
-            on_batch(results, {"batch_seconds": dt, "compile_seconds": compile_s, "episodes": len(chunk),
-                               "control_steps": int(loop_steps),
-                               "env_steps": int(np.sum(final.step[:len(chunk)]))})
+            on_batch(results, {"batch_seconds": dt, "compile_seconds": run.compile_seconds, "episodes": len(chunk),
+                               "control_steps": int(loop_steps), "env_steps": int(np.sum(final.step[:len(chunk)])),
+                               "devices": run.devices})
     return results
 
 

@@ -1,0 +1,49 @@
+"""Data parallelism over devices: the env batch is split along a one-axis mesh named "envs",
+parameters are replicated. `jax.jit` follows the input shardings (GSPMD), so the rollout
+code itself is unchanged: each device steps its own slice of the envs, and the loop's
+all-done test is the only cross-device reduction per control step.
+
+Multi-host: after `jax.distributed.initialize()`, `jax.devices()` lists every host's devices,
+each process passes the same host arrays, and results are gathered back to every process.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import jax
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+
+AXIS = "envs"
+
+
+def env_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
+    """A 1-D mesh over `devices` (default: all devices, every host's after jax.distributed)."""
+    return Mesh(np.asarray(jax.devices() if devices is None else devices), (AXIS,))
+
+
+def check_batch(num_envs: int, mesh: Mesh) -> None:
+    if num_envs % mesh.size:
+        raise ValueError(f"num_envs={num_envs} is not divisible by the {mesh.size} devices it is sharded over; "
+                         f"use a multiple of {mesh.size}")
+
+
+def shard_batch(mesh: Mesh, tree: Any) -> Any:
+    """Splits every array of `tree` along its leading (env) axis over the mesh."""
+    return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))
+
+
+def replicate(mesh: Mesh, tree: Any) -> Any:
+    """A full copy of `tree` (parameters) on every device of the mesh."""
+    if jax.process_count() > 1:  # committed single-device arrays cannot be sent to other hosts
+        tree = jax.device_get(tree)
+    return jax.device_put(tree, NamedSharding(mesh, P()))
+
+
+def fetch(tree: Any) -> Any:
+    """Host copies of (possibly sharded) arrays; across hosts, gathered on every process."""
+    if jax.process_count() > 1:
+        return multihost_utils.process_allgather(tree, tiled=True)
+    return jax.device_get(tree)
