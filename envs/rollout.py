@@ -100,7 +100,8 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
         state, pstate = carry
         action, pstate, _ = _act(policy, state, pstate, act_keys, t)
         out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
-                   ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel)
+                   ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel,
+                   done=state.done)
         noise_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, t), 1))(act_keys)
         noise = exec_noise * jax.vmap(lambda k: jax.random.normal(k, (6,)))(noise_keys)
         executed = action.at[:, :6].set(jnp.clip(action[:, :6] + noise, -1.0, 1.0))

@@ -3,19 +3,23 @@
   python -m experiments.build_datastore --demos=data/demos --out=checkpoints/datastore
 
 Keys: the last --history actions and the proprio vector; values: the next action's tokens
-under the target's tokenizer (heisd_jax/retrieval.py). The datastore records the target's
+under the target's tokenizer (heisd_jax/retrieval.py). Every 1/--holdout-th episode is
+left out (listed in meta.json) for experiments.calibrate_boundary; the kinematic metric's
+per-feature scales (90th percentile over the datastore's demo steps) are saved with it. The datastore records the target's
 fingerprint and is refused for any other target. An existing --out is replaced only once
 the new one is complete, and only with --overwrite.
 """
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from heisd_jax import checkpoint, retrieval, vla_policy
+from envs import demos
+from heisd_jax import checkpoint, kinematics, retrieval, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
@@ -23,6 +27,8 @@ flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Target VL
 flags.DEFINE_string("out", "checkpoints/datastore", "Output directory.")
 flags.DEFINE_integer("history", 2, "Previous actions in each key.")
 flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")
+flags.DEFINE_float("holdout", 0.1, "Share of demo episodes left out of the datastore (every 1/holdout-th), "
+                   "for experiments.calibrate_boundary.")
 flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
 
 
@@ -36,10 +42,15 @@ def main(argv):
     params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
     try:
-        store = retrieval.build_from_demos(FLAGS.demos, spec, tok)
+        n = len(demos.DemoDataset(FLAGS.demos))
+        keep, held = retrieval.split_episodes(n, FLAGS.holdout)
+        store = retrieval.build_from_demos(FLAGS.demos, spec, tok, keep)
+        scales = kinematics.scales_from_demos(retrieval.demo_features(FLAGS.demos, keep))
     except (FileNotFoundError, ValueError) as e:
         raise app.UsageError(str(e)) from e
-    retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params), extra={"demos": str(FLAGS.demos)})
+    retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params),
+                   extra={"demos": os.path.abspath(FLAGS.demos), "holdout_episodes": held,
+                          "metric_scales": list(scales), "metric_features": list(kinematics.FEATURES)})
     size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())
     print(f"datastore: {store.size} entries, key dim {spec.dim}, {size / 2**20:.1f} MiB -> {FLAGS.out}")
 

@@ -22,7 +22,7 @@ from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, methods, results_io, spec_decode, vla_policy
+from heisd_jax import evaluate as ev, hybrid, methods, results_io, spec_decode, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -32,12 +32,41 @@ flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the fi
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
-flags.DEFINE_enum("acceptance", "strict", list(spec_decode.ACCEPTANCE), "Speculative methods: acceptance rule.")
-flags.DEFINE_integer("relax_bins", 0, "token_relaxed: accept a draft within this many bins of the target's choice.")
-flags.DEFINE_integer("top_k", 8, "Draft tree: children kept per level (EAGLE-2 top-k).")
-flags.DEFINE_integer("depth", 4, "Draft tree: depth.")
-flags.DEFINE_integer("total_tokens", 32, "Draft tree: nodes verified per round (<= top_k * depth).")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Speculative methods: the drafter checkpoint.")
+flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "retrieval/heisd: the retrieval datastore.")
+flags.DEFINE_enum("acceptance", None, list(spec_decode.ACCEPTANCE),
+                  "Drafter trees: acceptance rule (default: strict for drafter, token_relaxed for retrieval/heisd).")
+flags.DEFINE_integer("relax_bins", None, "token_relaxed: accept a draft within this many bins of the target's choice.")
+flags.DEFINE_integer("top_k", None, "Draft tree: children kept per level (EAGLE-2 top-k; default 8).")
+flags.DEFINE_integer("depth", None, "Draft tree: depth (default 4).")
+flags.DEFINE_integer("total_tokens", None, "Draft tree: nodes verified per round (<= top_k * depth; default 32).")
+flags.DEFINE_enum("mode", None, list(hybrid.MODES), "heisd: hybrid (kinematic boundary) or one mode at every step.")
+flags.DEFINE_enum("retrieval_acceptance", None, list(hybrid.RETRIEVAL_ACCEPTANCE),
+                  "retrieval/heisd: acceptance rule for retrieval drafts (heisd default seq_relaxed).")
+flags.DEFINE_integer("retrieval_relax_bins", None, "token_relaxed retrieval acceptance: bins (default 9).")
+flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4).")
+flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
+flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict acceptance).")
+flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
+flags.DEFINE_float("tau_on", None, "Boundary: metric above which the drafter mode starts (default: the calibration).")
+flags.DEFINE_float("tau_off", None, "Boundary: metric below which the retrieval mode starts.")
+
+METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
+                "retrieval_relax_bins", "n_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off")
+
+
+def method_settings() -> dict:
+    """The method's own settings from the flags that were given (validated: a clear error
+    before anything loads or compiles)."""
+    given = {k: getattr(FLAGS, k) for k in METHOD_FLAGS if getattr(FLAGS, k) is not None}
+    if FLAGS.method in ("expert", "ar"):
+        if given:
+            raise app.UsageError(f"--method={FLAGS.method} takes none of --{', --'.join(given)}")
+        return {}
+    try:
+        return methods.check_settings(FLAGS.method, given)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
 
 
 def main(argv):
@@ -46,21 +75,22 @@ def main(argv):
     task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
     cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
     settings = {"method": FLAGS.method, "tasks": [t.name for t in task_list], "episodes_per_task": cfg.episodes_per_task}
-    kwargs = {}
     if FLAGS.method != "expert":
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
-    if FLAGS.method == "drafter":
-        spec = dict(acceptance=FLAGS.acceptance, relax_bins=FLAGS.relax_bins, top_k=FLAGS.top_k, depth=FLAGS.depth,
-                    total_tokens=FLAGS.total_tokens)
-        try:
-            spec_decode.SpecConfig(**spec)
-        except ValueError as e:
-            raise app.UsageError(str(e)) from e
-        settings.update(spec, drafter=os.path.abspath(FLAGS.drafter))
-        kwargs.update(spec)
+    kwargs = method_settings()
+    settings.update(kwargs)
+    paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}
+    for key in methods.CHECKPOINTS.get(FLAGS.method, ()):
+        if key != "checkpoint_path":
+            name = key.removesuffix("_path")
+            settings[name] = os.path.abspath(paths[name])
     done = results_io.load_resumable(FLAGS.out, settings)
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
-    policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter, **kwargs)
+    try:
+        policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                     datastore=FLAGS.datastore, **kwargs)
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")

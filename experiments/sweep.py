@@ -5,7 +5,8 @@
   python -m experiments.sweep --config=sweep.json       # the same settings as a JSON object
   python -m experiments.report results/sweep.jsonl
 
-A method is NAME or NAME:key=value,key=value (e.g. drafter:top_k=4,depth=2,total_tokens=8).
+A method is NAME or NAME:key=value,key=value (e.g. drafter:top_k=4,depth=2,total_tokens=8,
+heisd:skip=false); `heisd_jax.methods.check_settings` lists each method's valid keys.
 Every cell runs the batched evaluator on the suite's tasks and is appended to --out (with
 the method's full settings, the git commit, the device and library versions) as soon as it
 finishes: rerunning the same command skips finished cells, and a partial last line left by
@@ -30,7 +31,7 @@ import jax
 import mujoco
 from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, spec_decode, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("config", "", "JSON file with any of: methods, suites, tasks, episodes, num_envs, seeds.")
@@ -42,49 +43,15 @@ flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore (retrieval, heisd).")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
 
-def _value(v: str):
-    for cast in (int, float):
-        try:
-            return cast(v)
-        except ValueError:
-            pass
-    return v
-
-
 def parse_methods(spec: str) -> list[tuple[str, dict]]:
-    """'ar,drafter:acceptance=token_relaxed,relax_bins=9' (or ';'-separated) ->
-    [(name, settings), ...]: a comma-separated key=value after NAME:... belongs to it."""
-    parts: list[str] = []
-    for tok in (t.strip() for t in spec.replace(";", ",").split(",")):
-        if not tok:
-            continue
-        if "=" in tok and ":" not in tok and parts:
-            parts[-1] += "," + tok
-        else:
-            parts.append(tok)
-    out = []
-    for part in (p.strip() for p in parts if p.strip()):
-        name, _, rest = part.partition(":")
-        if name not in methods.METHODS:
-            raise app.UsageError(f"unknown method {name!r}; valid methods: {', '.join(sorted(methods.METHODS))}")
-        settings = {}
-        for kv in filter(None, rest.split(",")):
-            k, eq, v = kv.partition("=")
-            if not eq:
-                raise app.UsageError(f"method setting {kv!r} of {name!r} is not key=value")
-            settings[k.strip()] = _value(v.strip())
-        if name == "drafter":
-            try:
-                spec_decode.SpecConfig(**settings)
-            except (TypeError, ValueError) as e:
-                raise app.UsageError(f"method {part!r}: {e}") from e
-        elif settings and name != "expert":
-            raise app.UsageError(f"method {name!r} takes no settings, got {settings}")
-        out.append((name, settings))
-    return out
+    try:
+        return methods.parse_method_list(spec)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
 
 
 def _provenance() -> dict:
@@ -102,7 +69,8 @@ def _provenance() -> dict:
 def run_cell(cell: dict, task_list, progress) -> dict:
     name, settings = cell["method"], dict(cell["settings"])
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(name, True)))
-    policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter, **settings)
+    policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                 datastore=FLAGS.datastore, **settings)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     def on_batch(results, t):
@@ -154,7 +122,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     per_suite = {s: t for s, t in per_suite.items() if t}
     sweep = {"episodes": episodes, "tasks": task_filter, "checkpoint": os.path.abspath(FLAGS.checkpoint),
-             "drafter": os.path.abspath(FLAGS.drafter)}
+             "drafter": os.path.abspath(FLAGS.drafter), "datastore": os.path.abspath(FLAGS.datastore)}
     try:
         store = results_io.SweepFile(FLAGS.out, sweep)
     except ValueError as e:

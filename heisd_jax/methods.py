@@ -177,3 +177,40 @@ def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = 
     given = {"checkpoint_path": checkpoint, "drafter_path": drafter, "datastore_path": datastore}
     paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
     return METHODS[name](env, **paths, **settings)
+
+
+def _value(v: str):
+    for cast in (int, float):
+        try:
+            return cast(v)
+        except ValueError:
+            pass
+    return v
+
+
+def parse_method_list(spec: str) -> list[tuple[str, dict]]:
+    """'ar,drafter:acceptance=token_relaxed,relax_bins=9;heisd:skip=false' -> [(name,
+    settings), ...] (a comma-separated key=value after NAME:... belongs to it), every
+    method's settings checked (`check_settings`)."""
+    parts: list[str] = []
+    for tok in (t.strip() for t in spec.replace(";", ",").split(",")):
+        if not tok:
+            continue
+        if "=" in tok and ":" not in tok and parts:
+            parts[-1] += "," + tok
+        else:
+            parts.append(tok)
+    out = []
+    for part in parts:
+        name, _, rest = part.partition(":")
+        settings = {}
+        for kv in filter(None, rest.split(",")):
+            k, eq, v = kv.partition("=")
+            if not eq:
+                raise ValueError(f"method setting {kv!r} of {name!r} is not key=value")
+            settings[k.strip()] = _value(v.strip())
+        try:
+            out.append((name, check_settings(name, settings)))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"method {part!r}: {e}") from e
+    return out

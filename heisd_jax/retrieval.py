@@ -10,6 +10,8 @@ tokenizer. Entries carry their task (global task index): a query only matches it
 `lax.top_k`, a static number of candidates with a validity mask (same task, within
 `max_dist`). Saved as one .npz + meta.json beside the checkpoints, tied to the target's
 tokenizer and checkpoint fingerprint; a datastore built for another target is refused.
+Keys are stored as float16 (half the size; a key's entries are O(1), so the rounding,
+~1e-3 relative, is far below the distances that separate neighbours) and used as float32.
 """
 
 from __future__ import annotations
@@ -82,6 +84,34 @@ def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
                      tokens=jnp.asarray(np.concatenate(tokens), jnp.int32), task=jnp.asarray(np.concatenate(task)))
 
 
+def split_episodes(n_episodes: int, holdout: float) -> tuple[list[int], list[int]]:
+    """(datastore episodes, held-out episodes): every round(1/holdout)-th episode is held
+    out (for calibrating the boundary on trajectories the datastore has not seen)."""
+    if not 0 <= holdout < 1:
+        raise ValueError(f"holdout must be in [0, 1), got {holdout}")
+    if holdout == 0:
+        return list(range(n_episodes)), []
+    every = max(2, round(1 / holdout))
+    held = [i for i in range(n_episodes) if i % every == every - 1]
+    return [i for i in range(n_episodes) if i % every != every - 1], held
+
+
+def demo_features(path: str | os.PathLike, episodes: list[int] | None = None) -> np.ndarray:
+    """The kinematic features (`heisd_jax.kinematics.features`) of every step of the demos
+    [N, 5], the previous velocity being the episode's previous step's (zero at the start)."""
+    from envs import demos  # noqa: PLC0415
+    from heisd_jax import kinematics  # noqa: PLC0415
+
+    ds = demos.DemoDataset(path)
+    out = []
+    for i in range(len(ds)) if episodes is None else episodes:
+        ep = ds.episode(i)
+        v = np.asarray(ep["ee_vel"], np.float32)
+        prev = np.concatenate([np.zeros((1, 3), np.float32), v[:-1]])
+        out.append(np.asarray(kinematics.features(v, ep["ee_ang_vel"], ep["ee_acc"], ep["gripper_vel"], prev)))
+    return np.concatenate(out)
+
+
 def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenizer,
                      episodes: list[int] | None = None) -> Datastore:
     """A datastore of a demos dataset (envs.demos), keyed by global task index."""
@@ -117,7 +147,7 @@ def save(path: str | os.PathLike, store: Datastore, spec: KeySpec, tok: ActionTo
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=False)
-    np.savez(tmp / "datastore.npz", keys=np.asarray(store.keys), tokens=np.asarray(store.tokens, np.int16),
+    np.savez(tmp / "datastore.npz", keys=np.asarray(store.keys, np.float16), tokens=np.asarray(store.tokens, np.int16),
              task=np.asarray(store.task, np.int16))
     meta = dict(format=FORMAT, key_spec=dataclasses.asdict(spec), tokenizer=tok.to_dict(),
                 target_fingerprint=target_fingerprint, size=store.size, **(extra or {}))
@@ -151,7 +181,7 @@ def load(path: str | os.PathLike, tok: ActionTokenizer, target_fingerprint: str)
                          f"({meta.get('target_fingerprint')} != {target_fingerprint})")
     try:
         with np.load(path / "datastore.npz") as z:
-            keys, tokens, task = z["keys"], z["tokens"].astype(np.int32), z["task"].astype(np.int32)
+            keys, tokens, task = z["keys"].astype(np.float32), z["tokens"].astype(np.int32), z["task"].astype(np.int32)
     except Exception as e:  # truncated or damaged archive
         raise ValueError(f"datastore {path}: cannot read datastore.npz ({e})") from e
     spec = KeySpec(**meta["key_spec"])

@@ -1,0 +1,202 @@
+"""Per-action decoding speed of every method on the same closed-loop trajectories, in one run.
+
+  python -m experiments.bench_methods --suites=goal --batch_sizes=1,256 \
+      --methods="ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd" --out=results/bench_methods.json
+
+Closed-loop timings mix decoding with physics and rendering, and at batch 1 MJX's substeps
+dominate. To time the decoder alone on realistic inputs, this first records --steps control
+steps of --record_method (default ar) in --record_envs envs on the fixed evaluation initial
+states (images, proprio, end-effector kinematics as the rollout saw them), then, per method
+and batch size B, replays them: a jitted `lax.scan` over the recorded steps calls the
+method's policy step (its own state carried: action history, boundary, skips) on B of the
+recorded envs. Timed after a warm-up call (compilation excluded), median of --reps;
+speedup = AR time / method time in this run. Per method it also reports target passes per
+action (TPA), tokens per target pass (AL), the mode shares, and how often the method's
+action equals the recorded AR action (lossless methods: 1.0) with the mean bin distance.
+The replay is open loop: the observations are the recording method's, so a method's own
+drift (and its success rate) is not captured: see experiments.sweep for that.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from envs import rollout, tasks as tasks_lib
+from envs.env import TabletopEnv
+from heisd_jax import checkpoint, methods, retrieval, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
+                    "Methods (as in experiments.sweep); AR is always timed first as the baseline.")
+flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
+flags.DEFINE_list("batch_sizes", ["1", "256"], "Batch sizes.")
+flags.DEFINE_integer("record_envs", 256, "Recorded envs (>= the largest batch size).")
+flags.DEFINE_integer("steps", 120, "Recorded control steps per env.")
+flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollouts are recorded.")
+flags.DEFINE_integer("batch1_envs", 4, "Batch 1: replay this many recorded envs one after another.")
+flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+flags.DEFINE_string("out", "", "JSON output path.")
+
+
+@struct.dataclass
+class _Obs:
+    image: jnp.ndarray
+    instruction: jnp.ndarray
+    proprio: jnp.ndarray
+
+
+@struct.dataclass
+class _Kin:
+    lin_vel: jnp.ndarray
+    ang_vel: jnp.ndarray
+    lin_acc: jnp.ndarray
+    gripper_vel: jnp.ndarray
+
+
+@struct.dataclass
+class _Info:
+    task_id: jnp.ndarray
+
+
+@struct.dataclass
+class ReplayState:
+    """The fields of `envs.env.EnvState` that decoding policies read."""
+    obs: _Obs
+    kin: _Kin
+    info: _Info
+    step: jnp.ndarray
+
+
+def record(env: TabletopEnv, n_envs: int, n_steps: int):
+    """[T, B] replay states and AR's recorded actions [T, B, 7] and done flags [T, B]."""
+    policy = methods.make_policy(FLAGS.record_method, env, checkpoint=FLAGS.checkpoint)
+    n_tasks = len(env.tasks)
+    tids = np.arange(n_envs) % n_tasks
+    eps = (np.arange(n_envs) // n_tasks) % tasks_lib.N_EVAL_INIT_STATES
+    keys = env.initial_state_keys(tids, eps, split="eval")
+    fn = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p),
+                                                          k, t, n_steps))
+    final, traj = fn(policy.params, keys, jnp.asarray(tids, jnp.int32))
+    t = n_steps
+    states = ReplayState(
+        obs=_Obs(image=traj["image"], instruction=jnp.broadcast_to(final.obs.instruction, (t,) + final.obs.instruction.shape),
+                 proprio=traj["proprio"]),
+        kin=_Kin(lin_vel=traj["ee_vel"], ang_vel=traj["ee_ang_vel"], lin_acc=traj["ee_acc"],
+                 gripper_vel=traj["gripper_vel"]),
+        info=_Info(task_id=jnp.broadcast_to(jnp.asarray(tids, jnp.int32), (t, n_envs))),
+        step=jnp.broadcast_to(jnp.arange(t)[:, None], (t, n_envs)))
+    return states, traj["action"], traj["done"]
+
+
+def replay_fn(policy):
+    def run(params, states):
+        first = jax.tree.map(lambda x: x[0], states)
+        pstate = policy.init(params, first)
+        keys = jnp.zeros((first.step.shape[0], 2), jnp.uint32)
+
+        def body(pstate, s):
+            actions, pstate, stats = policy.act(params, s, pstate, keys)
+            return pstate, (actions, stats)
+        return jax.lax.scan(body, pstate, states)[1]
+    return jax.jit(run)
+
+
+def median_seconds(fn, reps):
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        method_list = methods.parse_method_list(FLAGS.methods)
+        task_list = tasks_lib.get_tasks(FLAGS.suites)
+        sizes = sorted({int(b) for b in FLAGS.batch_sizes})
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if sizes[0] < 1 or sizes[-1] > FLAGS.record_envs:
+        raise app.UsageError(f"batch sizes must be in 1..--record_envs={FLAGS.record_envs}, got {sizes}")
+    method_list = [("ar", {})] + [m for m in method_list if m != ("ar", {})]
+    env = TabletopEnv(task_list)
+    t0 = time.perf_counter()
+    states, ar_actions, done = record(env, FLAGS.record_envs, FLAGS.steps)
+    print(f"recorded {FLAGS.record_envs} envs x {FLAGS.steps} steps of {FLAGS.record_method} in "
+          f"{time.perf_counter() - t0:.0f}s (compile included) on {jax.devices()[0].device_kind}", flush=True)
+    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    running = ~np.asarray(done)
+    rows, query_ms = [], {}
+    store_path = Path(FLAGS.datastore)
+    if any(n in ("retrieval", "heisd") for n, _ in method_list) and store_path.exists():
+        params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        store, key_spec, _ = retrieval.load(store_path, tok, checkpoint.fingerprint(params))
+        for b in sizes:  # the kNN query alone (it must stay far below one target pass)
+            keys = jnp.zeros((b, key_spec.dim), jnp.float32)
+            q = jax.jit(lambda s, k: retrieval.query(s, k, jnp.zeros((b,), jnp.int32), 4))
+            query_ms[b] = 1e3 * median_seconds(lambda: q(store, keys), max(FLAGS.reps, 10))
+            print(f"B={b:<4} retrieval query ({store.size} entries): {query_ms[b]:.3f} ms", flush=True)
+    for b in sizes:
+        groups = [np.arange(i, i + 1) for i in range(FLAGS.batch1_envs)] if b == 1 else [np.arange(b)]
+        base = None
+        for name, settings in method_list:
+            policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                         datastore=FLAGS.datastore, **settings)
+            fn = replay_fn(policy)
+            secs, stats_all, same, dist = 0.0, {}, [], []
+            for g in groups:
+                sub = jax.tree.map(lambda x: x[:, g], states)
+                secs += median_seconds(lambda: fn(policy.params, sub), FLAGS.reps)
+                actions, stats = jax.device_get(fn(policy.params, sub))
+                m = running[:, g]
+                for k, v in stats.items():
+                    stats_all[k] = stats_all.get(k, 0.0) + float(np.asarray(v)[m].sum())
+                bins = np.asarray(tok.to_bins(actions)), np.asarray(tok.to_bins(np.asarray(ar_actions)[:, g]))
+                same.append(np.all(bins[0] == bins[1], -1)[m])
+                dist.append(np.abs(bins[0] - bins[1]).mean(-1)[m])
+            n_act = float(sum(running[:, g].sum() for g in groups))
+            ms = 1e3 * secs / (FLAGS.steps * len(groups))  # per batched action
+            base = ms if name == "ar" else base
+            row = {"method": name, "settings": settings, "batch": b, "ms_per_action": ms,
+                   "speedup_vs_ar": base / ms,
+                   **{f"{k}_per_action": v / n_act for k, v in stats_all.items()},
+                   "identical_to_ar": float(np.concatenate(same).mean()),
+                   "mean_bin_distance_to_ar": float(np.concatenate(dist).mean())}
+            if "target_passes" in stats_all:
+                row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
+            rows.append(row)
+            label = name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
+            shares = ""
+            if "skipped" in stats_all:
+                shares = (f" retr-verified {row['retrieval_verified_per_action']:.2f} skipped "
+                          f"{row['skipped_per_action']:.2f} drafter {row['drafter_mode_per_action']:.2f}")
+            print(f"B={b:<4} {label:<60} {ms:8.2f} ms/action {row['speedup_vs_ar']:5.2f}x  TPA "
+                  f"{row.get('target_passes_per_action', 7):.2f}  AL {row.get('tokens_per_target_pass', 1):.2f}  "
+                  f"=AR {row['identical_to_ar']:.2f}  bins {row['mean_bin_distance_to_ar']:.2f}{shares}", flush=True)
+    if FLAGS.out:
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
+                                               "record_method": FLAGS.record_method, "suites": FLAGS.suites,
+                                               "query_ms": query_ms, "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    app.run(main)
