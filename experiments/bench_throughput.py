@@ -1,0 +1,149 @@
+"""Policy-in-the-loop evaluation throughput: the batched evaluator vs a sequential
+per-episode loop, in one run.
+
+  python -m experiments.bench_throughput --method=expert --suites=spatial --batch_sizes=1,64,256,1024 \
+      --episodes=1024 --seq_episodes=16 --out=results/bench_throughput.json
+
+Batched: `heisd_jax.evaluate.BatchRollout`, the evaluator's jitted rollout (one
+`lax.while_loop` over control steps, envs vmapped and sharded over the devices), running
+at least --episodes episodes per batch size in whole batches. Sequential: what LIBERO-style
+evaluation does: one env, and per control step one jitted policy call and one jitted env
+step dispatched from Python, the episode's end checked on the host. Episodes cycle over
+the tasks and their fixed evaluation initial states; both modes use the same policy keys,
+so a deterministic policy plays the same episodes in both. Compilation and one warm-up
+call are excluded from every timing. Episodes per second, and the ratio to the sequential
+loop, are printed per batch size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from envs import rollout, tasks as tasks_lib
+from envs.env import EnvConfig, TabletopEnv
+from heisd_jax import evaluate as ev, methods, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) in the loop.")
+flags.DEFINE_string("suites", "spatial", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
+flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
+flags.DEFINE_list("batch_sizes", ["1", "64", "256", "1024"], "Parallel env counts of the batched evaluator.")
+flags.DEFINE_integer("episodes", 1024, "Episodes timed per batch size (rounded up to whole batches).")
+flags.DEFINE_integer("seq_episodes", 16, "Episodes timed in the sequential loop.")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
+flags.DEFINE_string("out", "", "Optional JSON output path.")
+
+
+def episode_list(env: TabletopEnv, n: int) -> np.ndarray:
+    """[n, 2] (task index, initial state) pairs, cycling over tasks, then initial states."""
+    i = np.arange(n)
+    return np.stack([i % len(env.tasks), (i // len(env.tasks)) % tasks_lib.N_EVAL_INIT_STATES], 1)
+
+
+def outcome(final, i: int) -> tuple[bool, int]:
+    return bool(final.success[i]), int(final.step[i])
+
+
+def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int) -> dict:
+    """Episodes per second of the batched evaluator's rollout at `batch` envs."""
+    n_dev = max(d for d in range(1, jax.device_count() + 1) if batch % d == 0)
+    run = ev.BatchRollout(env, policy, batch, devices=jax.devices()[:n_dev])
+    eps = episode_list(env, math.ceil(n_episodes / batch) * batch)
+    run(run.inputs(*eps[:batch].T))  # compile + warm-up
+    outcomes = []
+    t0 = time.perf_counter()
+    for start in range(0, len(eps), batch):
+        final, _, _ = run(run.inputs(*eps[start: start + batch].T))
+        outcomes += [outcome(final, i) for i in range(batch)]
+    dt = time.perf_counter() - t0
+    return {"mode": "batched", "num_envs": batch, "devices": n_dev, "episodes": len(eps), "seconds": dt,
+            "episodes_per_s": len(eps) / dt, "compile_s": run.compile_seconds, "outcomes": outcomes}
+
+
+def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int) -> dict:
+    """Episodes per second of a per-episode loop: one env, one jitted policy call and one
+    jitted env step per control step from Python (LIBERO-style)."""
+    max_steps = int(max(t.max_steps for t in env.tasks))
+    start = jax.jit(lambda params, k, t: rollout._start(env, dataclasses.replace(policy, params=params), k, t))
+    act = jax.jit(lambda params, s, ps, ak, t: rollout._act(dataclasses.replace(policy, params=params), s, ps, ak, t))
+    step = jax.jit(jax.vmap(env.step))
+    eps = episode_list(env, n_episodes)
+
+    def episode(tid: int, ep: int):
+        keys = env.initial_state_keys([tid], [ep])  # [1, 2]
+        state, pstate, act_keys = start(policy.params, keys, jnp.asarray([tid], jnp.int32))
+        for t in range(max_steps):
+            action, pstate, _ = act(policy.params, state, pstate, act_keys, jnp.asarray(t, jnp.int32))
+            state = step(state, action)
+            if bool(state.done[0]):
+                break
+        return outcome(jax.device_get(state), 0)
+
+    t0 = time.perf_counter()
+    episode(*eps[0])  # compile + warm-up
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    outcomes = [episode(*e) for e in eps]
+    dt = time.perf_counter() - t0
+    return {"mode": "sequential", "num_envs": 1, "devices": 1, "episodes": n_episodes, "seconds": dt,
+            "episodes_per_s": n_episodes / dt, "compile_s": compile_s, "outcomes": outcomes}
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:  # every bad value is reported before anything is compiled
+        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    sizes = [int(b) for b in FLAGS.batch_sizes if b.strip().isdigit()]
+    if not sizes or len(sizes) != len(FLAGS.batch_sizes) or min(sizes) < 1:
+        raise app.UsageError(f"--batch_sizes must be positive integers, got {','.join(FLAGS.batch_sizes)}")
+    if FLAGS.episodes < 1 or FLAGS.seq_episodes < 1:
+        raise app.UsageError("--episodes and --seq_episodes must be >= 1")
+    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
+    policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter)
+    device = f"{jax.devices()[0].device_kind} x{jax.device_count()}"
+    print(f"{FLAGS.method} on {len(task_list)} tasks, {device}, jax {jax.__version__}", flush=True)
+
+    rows = [sequential(env, policy, FLAGS.seq_episodes)]
+    print(f"  sequential: {rows[-1]['episodes_per_s']:.3f} episodes/s", flush=True)
+    for b in sizes:
+        rows.append(batched(env, policy, b, FLAGS.episodes))
+        print(f"  batched {b}: {rows[-1]['episodes_per_s']:.3f} episodes/s", flush=True)
+    base = rows[0]
+    for r in rows:
+        r["x_sequential"] = r["episodes_per_s"] / base["episodes_per_s"]
+        r["success_rate"] = float(np.mean([s for s, _ in r["outcomes"]]))
+        # Episodes also played by the sequential loop (same initial state and policy keys).
+        shared = min(len(r["outcomes"]), len(base["outcomes"]))
+        r["same_as_sequential"] = sum(a == b for a, b in zip(r["outcomes"][:shared], base["outcomes"][:shared]))
+        r["same_of"] = shared
+
+    print(f"\n{'mode':<12}{'envs':>6}{'devices':>9}{'episodes':>10}{'episodes/s':>12}{'x sequential':>14}"
+          f"{'success':>9}{'compile s':>11}")
+    for r in rows:
+        print(f"{r['mode']:<12}{r['num_envs']:>6}{r['devices']:>9}{r['episodes']:>10}{r['episodes_per_s']:>12.3f}"
+              f"{r['x_sequential']:>14.2f}{r['success_rate']:>9.3f}{r['compile_s']:>11.0f}")
+    same = ", ".join(f"{r['same_as_sequential']}/{r['same_of']}" for r in rows[1:])
+    print(f"episodes identical to the sequential loop's (success, steps), per batch size: {same}")
+    if FLAGS.out:
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        settings = {k: FLAGS[k].value for k in ("method", "suites", "tasks", "batch_sizes", "episodes", "seq_episodes")}
+        Path(FLAGS.out).write_text(json.dumps({"settings": settings, "device": device, "jax": jax.__version__,
+                                               "tasks": [t.name for t in task_list], "rows": rows}, indent=1))
+
+
+if __name__ == "__main__":
+    app.run(main)
