@@ -73,7 +73,8 @@ def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: in
 
 def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int) -> dict:
     """Episodes per second of a per-episode loop: one env, one jitted policy call and one
-    jitted env step per control step from Python (LIBERO-style)."""
+    jitted env step per control step from Python (LIBERO-style). Its compile_s includes the
+    warm-up episode."""
     max_steps = int(max(t.max_steps for t in env.tasks))
     start = jax.jit(lambda params, k, t: rollout._start(env, dataclasses.replace(policy, params=params), k, t))
     act = jax.jit(lambda params, s, ps, ak, t: rollout._act(dataclasses.replace(policy, params=params), s, ps, ak, t))
