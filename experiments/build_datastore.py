@@ -29,6 +29,7 @@ flags.DEFINE_integer("history", 2, "Previous actions in each key.")
 flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")
 flags.DEFINE_float("holdout", 0.1, "Share of demo episodes left out of the datastore (every 1/holdout-th), "
                    "for experiments.calibrate_boundary.")
+flags.DEFINE_integer("stride", 1, "Keep every stride-th step (smaller datastore; the shipped one uses 2).")
 flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
 
 
@@ -44,13 +45,13 @@ def main(argv):
     try:
         n = len(demos.DemoDataset(FLAGS.demos))
         keep, held = retrieval.split_episodes(n, FLAGS.holdout)
-        store = retrieval.build_from_demos(FLAGS.demos, spec, tok, keep)
+        store = retrieval.subsample(retrieval.build_from_demos(FLAGS.demos, spec, tok, keep), FLAGS.stride)
         scales = kinematics.scales_from_demos(retrieval.demo_features(FLAGS.demos, keep))
     except (FileNotFoundError, ValueError) as e:
         raise app.UsageError(str(e)) from e
     retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params),
                    extra={"demos": os.path.abspath(FLAGS.demos), "holdout_episodes": held,
-                          "metric_scales": list(scales), "metric_features": list(kinematics.FEATURES)})
+                          "metric_scales": list(scales), "stride": FLAGS.stride, "metric_features": list(kinematics.FEATURES)})
     size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())
     print(f"datastore: {store.size} entries, key dim {spec.dim}, {size / 2**20:.1f} MiB -> {FLAGS.out}")
 

@@ -113,6 +113,7 @@ def main(argv):
         progress["episodes"] += t["episodes"]
         timing["batches"] += 1
         timing["compile_seconds"] = t["compile_seconds"]
+        timing["devices"] = t.get("devices", 1)
         for k in ("batch_seconds", "control_steps", "env_steps"):
             timing[k] += t[k]
         summary = write(results)

@@ -29,7 +29,7 @@ from flax import struct
 
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
-FORMAT = "heisd-jax-datastore-v1"
+FORMAT = "heisd-jax-datastore-v2"  # v2: compressed, float16 keys, uint8 bins and task ids
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,6 +82,14 @@ def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
     k = np.concatenate(keys).astype(np.float32)
     return Datastore(keys=jnp.asarray(k), sq_norms=jnp.asarray((k * k).sum(-1)),
                      tokens=jnp.asarray(np.concatenate(tokens), jnp.int32), task=jnp.asarray(np.concatenate(task)))
+
+
+def subsample(store: Datastore, stride: int) -> Datastore:
+    """Every `stride`-th entry (consecutive control steps are near-duplicate keys at 20 Hz;
+    a smaller datastore ships and queries faster)."""
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    return jax.tree.map(lambda x: x[::stride], store)
 
 
 def split_episodes(n_episodes: int, holdout: float) -> tuple[list[int], list[int]]:
@@ -147,8 +155,9 @@ def save(path: str | os.PathLike, store: Datastore, spec: KeySpec, tok: ActionTo
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     tmp.mkdir(parents=True, exist_ok=False)
-    np.savez(tmp / "datastore.npz", keys=np.asarray(store.keys, np.float16), tokens=np.asarray(store.tokens, np.int16),
-             task=np.asarray(store.task, np.int16))
+    np.savez_compressed(tmp / "datastore.npz", keys=np.asarray(store.keys, np.float16),
+                        bins=np.asarray(np.asarray(store.tokens) - tok.first_action_id, np.uint8),
+                        task=np.asarray(store.task, np.uint8))
     meta = dict(format=FORMAT, key_spec=dataclasses.asdict(spec), tokenizer=tok.to_dict(),
                 target_fingerprint=target_fingerprint, size=store.size, **(extra or {}))
     (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
@@ -181,7 +190,8 @@ def load(path: str | os.PathLike, tok: ActionTokenizer, target_fingerprint: str)
                          f"({meta.get('target_fingerprint')} != {target_fingerprint})")
     try:
         with np.load(path / "datastore.npz") as z:
-            keys, tokens, task = z["keys"].astype(np.float32), z["tokens"].astype(np.int32), z["task"].astype(np.int32)
+            keys, task = z["keys"].astype(np.float32), z["task"].astype(np.int32)
+            tokens = z["bins"].astype(np.int32) + tok.first_action_id
     except Exception as e:  # truncated or damaged archive
         raise ValueError(f"datastore {path}: cannot read datastore.npz ({e})") from e
     spec = KeySpec(**meta["key_spec"])
