@@ -141,3 +141,23 @@ def test_config_rejects_bad_settings():
         hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
     with pytest.raises(ValueError, match="tau_on > tau_off"):
         kinematics.BoundaryConfig(tau_on=0.5, tau_off=0.8)
+
+
+def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
+    from envs import tasks
+    from envs.env import TabletopEnv
+    from heisd_jax import methods
+
+    policy = methods.make_policy("heisd", TabletopEnv(tasks.get_tasks("goal")), top_k=4, depth=2, total_tokens=8)
+    assert policy.name == "heisd" and policy.params["store"].size > 100_000
+    assert methods.check_settings("heisd", {"skip": "false", "k_skip": "2"}) == {"skip": False, "k_skip": 2}
+    with pytest.raises(ValueError, match="unknown settings \\['tau'\\]; valid: top_k"):
+        methods.check_settings("heisd", {"tau": 1})
+    with pytest.raises(ValueError, match="not a boolean"):
+        methods.check_settings("heisd", {"skip": "maybe"})
+    with pytest.raises(ValueError, match="switch skip off"):
+        methods.check_settings("heisd", {"acceptance": "strict", "skip": True})
+    assert methods.hybrid_config("heisd", {"acceptance": "strict"}).lossless
+    assert not methods.hybrid_config("heisd", {}).lossless
+    with pytest.raises(ValueError, match="takes no settings"):
+        methods.check_settings("ar", {"top_k": 4})
