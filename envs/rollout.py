@@ -31,6 +31,7 @@ class Policy:
     init: Callable[[Any, EnvState], Any]
     act: Callable[[Any, EnvState, Any, jax.Array], tuple[jnp.ndarray, Any, Stats]]
     params: Any = None
+    meta: dict = dataclasses.field(default_factory=dict)  # what built it (model config, method config), for tools
 
 
 def per_env(name: str, init: Callable[[EnvState], Any], act: Callable[[EnvState, Any, jax.Array], tuple]) -> Policy:

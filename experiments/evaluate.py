@@ -22,7 +22,7 @@ from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, hybrid, methods, results_io, spec_decode, vla_policy
+from heisd_jax import evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -73,7 +73,11 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-    cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
+    try:
+        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
+        sharding.check_batch(cfg.num_envs, sharding.env_mesh())
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
     settings = {"method": FLAGS.method, "tasks": [t.name for t in task_list], "episodes_per_task": cfg.episodes_per_task}
     if FLAGS.method != "expert":
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)

@@ -31,7 +31,7 @@ import jax
 import mujoco
 from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("config", "", "JSON file with any of: methods, suites, tasks, episodes, num_envs, seeds.")
@@ -118,6 +118,9 @@ def main(argv):
         chosen = tasks_lib.get_tasks(",".join(suites), task_filter)
         per_suite = {s: tuple(t for t in chosen if t.suite == s) for s in suites}
         ev.EvalConfig(episodes_per_task=episodes, num_envs=min(num_envs))
+        mesh = sharding.env_mesh()
+        for b in num_envs:  # before any cell runs, not mid-sweep
+            sharding.check_batch(b, mesh)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     per_suite = {s: t for s, t in per_suite.items() if t}

@@ -41,7 +41,7 @@ def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.D
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
     return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
-                                      vla_policy.drafter_sd(spec))
+                                      vla_policy.drafter_sd(spec), spec=spec)
 
 
 SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}

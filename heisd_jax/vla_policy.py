@@ -31,12 +31,13 @@ def observation(states: EnvState) -> vla.Observation:
     return vla.Observation(image=states.obs.image, instruction=states.obs.instruction, proprio=states.obs.proprio)
 
 
-def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn) -> Policy:
+def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn,
+                    **meta) -> Policy:
     def act(params, states, pstate, keys):
         tokens, stats = decode(params, cfg, observation(states))
         return tok.decode(tokens), pstate, stats
 
-    return Policy(name=name, init=lambda params, states: (), act=act, params=params)
+    return Policy(name=name, init=lambda params, states: (), act=act, params=params, meta=dict(cfg=cfg, tok=tok, **meta))
 
 
 def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, Stats]:
@@ -75,4 +76,5 @@ def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, h
                                                 gidx[states.info.task_id])
         return actions, pstate, stats
 
-    return Policy(name=name, init=init, act=act, params=params)
+    return Policy(name=name, init=init, act=act, params=params,
+                  meta=dict(cfg=cfg, tok=tok, hcfg=hcfg, spec=hcfg.spec, key_spec=key_spec))

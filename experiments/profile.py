@@ -1,0 +1,197 @@
+"""Where decoding time goes: a method's decode step broken into its parts, in closed loop.
+
+  python -m experiments.profile --method=heisd --settings=top_k=4,depth=2,total_tokens=8 \
+      --batch=256 --steps=50 --trace_dir=results/trace
+
+Runs --steps control steps of --batch envs on the fixed evaluation initial states of
+--suites with the method's policy. Every function is compiled once before timing (warm-up
+excluded); at every step each part is timed on that step's observations with
+`block_until_ready`:
+  act           the method's whole decode step (what the rollout calls)
+  ar            greedy AR decoding of the same observations (the baseline)
+  prefill       the target's prompt pass (with the drafter's features)
+  prefill+cand  the prefill with the retrieval candidates appended (fused verification)
+  retrieval     the datastore query (kNN)
+  draft_round   one EAGLE-2 tree (depth-1 drafter passes) + the drafter's update pass
+  verify_round  one tree-verification target pass with acceptance and commit
+  env_step      IK + physics + camera for the batch
+and prints per-call medians, an estimated per-action breakdown of `act` (each part times
+how often the method ran it per action, from its own statistics; the remainder is loop
+and masking overhead) and act's speedup over AR at this batch size. --trace_dir also writes
+a `jax.profiler` trace of a few steps (TensorBoard / Perfetto).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs import tasks as tasks_lib
+from envs.env import TabletopEnv
+from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, vla, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_enum("method", "heisd", ["ar", "drafter", "retrieval", "heisd"], "Decoding method.")
+flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value (as in experiments.sweep).")
+flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
+flags.DEFINE_integer("batch", 16, "Envs decoded together.")
+flags.DEFINE_integer("steps", 30, "Timed control steps.")
+flags.DEFINE_string("trace_dir", "", "Write a jax.profiler trace of 3 steps here.")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+flags.DEFINE_string("out", "", "Optional JSON output.")
+
+
+def _timed(fn, *args):
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    return out, time.perf_counter() - t0
+
+
+def component_fns(meta: dict, name: str):
+    """Jitted parts of the method's decode step (see the module docstring)."""
+    cfg, spec, hcfg = meta["cfg"], meta.get("spec"), meta.get("hcfg")
+    tp = (lambda p: p["target"]) if name != "ar" else (lambda p: p)
+    fns = {"ar": jax.jit(lambda p, obs: vla.ar_decode(tp(p), cfg, obs)[0]),
+           "prefill": jax.jit(lambda p, obs: vla.prefill_features(tp(p), cfg, obs))}
+    if name == "ar":
+        return fns
+
+    def after_prefill(p, obs):
+        logits, hidden, x, cache = vla.prefill_features(p["target"], cfg, obs)
+        return sd.start(p["target"], p["drafter"], cfg, logits, hidden, x, cache, obs, slack=spec.depth + 1)
+
+    def draft_round(p, s):
+        tree = sd.draft_tree(p["drafter"], p["target"], cfg, spec, s.dcache, s.feat)
+        return tree, sd.select_nodes(tree, spec.total_tokens)
+
+    def verify_round(p, s, tree, sel):
+        v = sd.verify(p["target"], cfg, spec, s.cache, s.root, tree, sel)
+        return sd.advance(p["target"], p["drafter"], cfg, s, v)
+
+    start = jax.jit(after_prefill)
+    fns.update(start=start, draft_round=jax.jit(draft_round), verify_round=jax.jit(verify_round))
+    if hcfg is not None:
+        def with_cand(p, obs, cand):
+            return vla.prefill_with_block(p["target"], cfg, obs, *hybrid.candidate_block(cand))
+        fns["prefill+cand"] = jax.jit(with_cand)
+        fns["retrieval"] = jax.jit(lambda p, keys, task: retrieval.query(p["store"], keys, task, hcfg.n_candidates))
+    return fns
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        settings = methods.check_settings(FLAGS.method, dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv))
+        task_list = tasks_lib.get_tasks(FLAGS.suites)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if FLAGS.batch < 1 or FLAGS.steps < 1:
+        raise app.UsageError("--batch and --steps must be >= 1")
+    env = TabletopEnv(task_list)
+    try:
+        policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                     datastore=FLAGS.datastore, **settings)
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
+    meta = policy.meta
+    hcfg = meta.get("hcfg")
+    fns = component_fns(meta, FLAGS.method)
+    n_tasks = len(env.tasks)
+    tids = np.arange(FLAGS.batch) % n_tasks
+    keys = env.initial_state_keys(tids, (np.arange(FLAGS.batch) // n_tasks) % tasks_lib.N_EVAL_INIT_STATES)
+    states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
+    params = policy.params
+    pstate = policy.init(params, states)
+    act = jax.jit(policy.act)
+    step = jax.jit(jax.vmap(env.step))
+    act_keys = jnp.zeros((FLAGS.batch, 2), jnp.uint32)
+    gidx = jnp.asarray(env.global_index, jnp.int32)
+
+    def parts(states, pstate):
+        obs = vla_policy.observation(states)
+        out = {"ar": (fns["ar"], params, obs), "prefill": (fns["prefill"], params, obs)}
+        if "start" in fns:
+            s = jax.block_until_ready(fns["start"](params, obs))
+            tree, sel = jax.block_until_ready(fns["draft_round"](params, s))
+            out.update(draft_round=(fns["draft_round"], params, s), verify_round=(fns["verify_round"], params, s, tree, sel))
+        if hcfg is not None:
+            k = retrieval.make_keys(meta["key_spec"], meta["tok"], pstate.prev_actions, obs.proprio)
+            task = gidx[states.info.task_id]
+            cand = jax.block_until_ready(fns["retrieval"](params, k, task))[0]
+            out.update(retrieval=(fns["retrieval"], params, k, task), **{"prefill+cand": (fns["prefill+cand"], params, obs, cand)})
+        return out
+
+    # Compile everything once (warm-up excluded from the timings).
+    t0 = time.perf_counter()
+    for fn, *args in parts(states, pstate).values():
+        jax.block_until_ready(fn(*args))
+    actions, _, _ = jax.block_until_ready(act(params, states, pstate, act_keys))
+    jax.block_until_ready(step(states, actions))
+    print(f"compiled in {time.perf_counter() - t0:.0f}s on {jax.devices()[0].device_kind}", flush=True)
+
+    times: dict[str, list[float]] = {}
+    totals: dict[str, float] = {}
+    n_running = 0.0
+    for t in range(FLAGS.steps):
+        for k, (fn, *args) in parts(states, pstate).items():
+            times.setdefault(k, []).append(_timed(fn, *args)[1])
+        running = np.asarray(~states.done, np.float32)
+        (actions, pstate, stats), dt = _timed(act, params, states, pstate, act_keys)
+        times.setdefault("act", []).append(dt)
+        for k, v in stats.items():
+            totals[k] = totals.get(k, 0.0) + float((np.asarray(v) * running).sum())
+        n_running += float(running.sum())
+        if FLAGS.trace_dir and t == 1:
+            jax.profiler.start_trace(FLAGS.trace_dir)
+        states, dt = _timed(step, states, actions)
+        times.setdefault("env_step", []).append(dt)
+        if FLAGS.trace_dir and t == 3:
+            jax.profiler.stop_trace()
+    if FLAGS.trace_dir and FLAGS.steps <= 3:
+        jax.profiler.stop_trace()
+    med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
+    per_action = {k: float(v) / max(n_running, 1.0) for k, v in totals.items()}
+    print(f"\n{FLAGS.method} {settings or ''}  batch {FLAGS.batch}, {FLAGS.steps} steps, median ms per call:")
+    for k in ("act", "ar", "prefill", "prefill+cand", "retrieval", "draft_round", "verify_round", "env_step"):
+        if k in med:
+            print(f"  {k:<14}{med[k]:9.3f}")
+    breakdown = {}
+    if FLAGS.method != "ar":
+        rounds = per_action.get("rounds", 0.0)
+        verified = per_action.get("retrieval_verified", 0.0)
+        skipped = per_action.get("skipped", 0.0)
+        breakdown["prefill"] = (1 - skipped) * (med["prefill"] + verified * (med.get("prefill+cand", med["prefill"])
+                                                                            - med["prefill"]))
+        breakdown["retrieval"] = med.get("retrieval", 0.0)
+        breakdown["draft+verify rounds"] = rounds * (med["draft_round"] + med["verify_round"])
+        breakdown["other (loop, masks, drafter prompt)"] = med["act"] - sum(breakdown.values())
+        print(f"  per action ({rounds:.2f} rounds, {per_action.get('target_passes', 0):.2f} target passes, "
+              f"{verified:.2f} retrieval-verified, {skipped:.2f} skipped):")
+        for k, v in breakdown.items():
+            print(f"    {k:<38}{v:9.3f} ms")
+    speedup = med["ar"] / med["act"]
+    print(f"  act vs AR at batch {FLAGS.batch}: {speedup:.2f}x (AR {med['ar']:.3f} ms, {FLAGS.method} {med['act']:.3f} ms); "
+          f"env step {med['env_step']:.3f} ms")
+    if FLAGS.trace_dir:
+        print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
+    if FLAGS.out:
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(FLAGS.out).write_text(json.dumps({"method": FLAGS.method, "settings": settings, "batch": FLAGS.batch,
+                                               "steps": FLAGS.steps, "device": jax.devices()[0].device_kind,
+                                               "median_ms": med, "per_action": per_action, "breakdown_ms": breakdown,
+                                               "speedup_vs_ar": speedup}, indent=1))
+
+
+if __name__ == "__main__":
+    app.run(main)
