@@ -29,6 +29,8 @@ flags.DEFINE_integer("history", 2, "Previous actions in each key.")
 flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")
 flags.DEFINE_float("holdout", 0.1, "Share of demo episodes left out of the datastore (every 1/holdout-th), "
                    "for experiments.calibrate_boundary.")
+flags.DEFINE_enum("values", "demo", list(retrieval.VALUES),
+                  "Values: the demo's next action, or the target's own greedy action on that step's observation.")
 flags.DEFINE_integer("stride", 1, "Keep every stride-th step (smaller datastore; the shipped one uses 2).")
 flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
 
@@ -40,18 +42,21 @@ def main(argv):
         raise app.UsageError(f"{FLAGS.out} exists; pass --overwrite to replace it (only once the new one is complete)")
     if FLAGS.history < 0 or FLAGS.pos_scale <= 0:
         raise app.UsageError("--history must be >= 0 and --pos_scale > 0")
-    params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
     try:
         n = len(demos.DemoDataset(FLAGS.demos))
         keep, held = retrieval.split_episodes(n, FLAGS.holdout)
-        store = retrieval.subsample(retrieval.build_from_demos(FLAGS.demos, spec, tok, keep), FLAGS.stride)
+        store = retrieval.build_from_demos(FLAGS.demos, spec, tok, keep)
+        if FLAGS.values == "target":
+            store = retrieval.with_values(store, retrieval.target_values(params, cfg, FLAGS.demos, keep))
+        store = retrieval.subsample(store, FLAGS.stride)
         scales = kinematics.scales_from_demos(retrieval.demo_features(FLAGS.demos, keep))
     except (FileNotFoundError, ValueError) as e:
         raise app.UsageError(str(e)) from e
     retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params),
                    extra={"demos": os.path.abspath(FLAGS.demos), "holdout_episodes": held,
-                          "metric_scales": list(scales), "stride": FLAGS.stride, "metric_features": list(kinematics.FEATURES)})
+                          "metric_scales": list(scales), "stride": FLAGS.stride, "values": FLAGS.values, "metric_features": list(kinematics.FEATURES)})
     size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())
     print(f"datastore: {store.size} entries, key dim {spec.dim}, {size / 2**20:.1f} MiB -> {FLAGS.out}")
 

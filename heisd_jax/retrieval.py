@@ -139,6 +139,35 @@ def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenize
     return build(spec, tok, gen())
 
 
+VALUES = ("demo", "target")  # what a key's value holds: the demo's next action, or the target's own choice
+
+
+def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | None = None,
+                  batch: int = 256) -> np.ndarray:
+    """The target's greedy AR tokens [N, 7] on every demo step's observation (in
+    `build_from_demos` order). Retrieved drafts are verified against the target's choices,
+    and the target imitates the expert only approximately: values it would choose itself
+    are accepted far more often (as EAGLE trains its drafter on the target's tokens)."""
+    from heisd_jax import data, vla  # noqa: PLC0415
+
+    steps = data.load_steps(str(path), episodes)
+    n = len(steps.action)
+    decode = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    out = []
+    for s in range(0, n, batch):
+        idx = np.arange(s, s + batch) % n  # static shape: wrap the last batch
+        obs = vla.Observation(image=jnp.asarray(steps.image[idx]), instruction=jnp.asarray(steps.instruction[idx]),
+                              proprio=jnp.asarray(steps.proprio[idx]))
+        out.append(np.asarray(decode(tparams, obs))[: min(batch, n - s)])
+    return np.concatenate(out).astype(np.int32)
+
+
+def with_values(store: Datastore, tokens: np.ndarray) -> Datastore:
+    if tokens.shape != store.tokens.shape:
+        raise ValueError(f"values {tokens.shape} do not match the datastore's {store.tokens.shape}")
+    return store.replace(tokens=jnp.asarray(tokens, jnp.int32))
+
+
 def query(store: Datastore, keys: jnp.ndarray, task: jnp.ndarray, n: int, max_dist: float = jnp.inf):
     """Exact kNN within the query's task. keys [B, dim], task [B] -> (candidate tokens
     [B, n, 7], squared distances [B, n], valid [B, n])."""

@@ -99,3 +99,10 @@ def test_holdout_split_is_disjoint_and_covers_every_episode():
     assert retrieval.split_episodes(5, 0.0) == ([0, 1, 2, 3, 4], [])
     with pytest.raises(ValueError, match="holdout"):
         retrieval.split_episodes(5, 1.0)
+
+
+def test_with_values_replaces_the_values_and_refuses_a_mismatch(store):
+    new = np.asarray(store.tokens)[:, ::-1].copy()
+    np.testing.assert_array_equal(np.asarray(retrieval.with_values(store, new).tokens), new)
+    with pytest.raises(ValueError, match="do not match"):
+        retrieval.with_values(store, new[1:])
