@@ -23,7 +23,6 @@ over AR measured in the same run:
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import jax
@@ -33,6 +32,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos
+from experiments.timing import median_seconds
 from heisd_jax import checkpoint, data, spec_decode, vla, vla_policy
 
 FLAGS = flags.FLAGS
@@ -47,16 +47,6 @@ flags.DEFINE_integer("top_k", 8, "Draft tree top-k.")
 flags.DEFINE_integer("depth", 4, "Draft tree depth.")
 flags.DEFINE_integer("total_tokens", 32, "Draft tree nodes verified per round.")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
-
-
-def median_seconds(fn, reps: int) -> float:
-    jax.block_until_ready(fn())  # compile + warm-up
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def random_observation(cfg: vla.VLAConfig, batch: int, seed: int = 0) -> vla.Observation:

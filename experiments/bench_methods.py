@@ -34,6 +34,7 @@ from flax import struct
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
+from experiments.timing import median_seconds
 from heisd_jax import checkpoint, methods, retrieval, vla_policy
 
 FLAGS = flags.FLAGS
@@ -113,16 +114,6 @@ def replay_fn(policy):
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]
     return jax.jit(run)
-
-
-def median_seconds(fn, reps):
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
 
 
 def main(argv):

@@ -1,0 +1,20 @@
+"""Wall-clock helpers shared by the benchmark scripts."""
+
+from __future__ import annotations
+
+import time
+
+import jax
+import numpy as np
+
+
+def median_seconds(fn, reps: int) -> float:
+    """Median wall-clock of `reps` calls of fn() (results blocked on), after one untimed
+    call (compilation and warm-up excluded)."""
+    jax.block_until_ready(fn())
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
