@@ -90,7 +90,8 @@ def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jn
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
                     exec_noise: float = 0.0):
     """Like run_episodes for exactly `n_steps`, also returning the trajectory: a dict of
-    [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics).
+    [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics,
+    done, and the policy's per-step decode statistics under "stats").
 
     exec_noise: std of Gaussian noise added to the six motion dimensions of the *executed*
     action only; the recorded action is the policy's own (noise injection as in DART: more
@@ -99,8 +100,8 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
 
     def body(carry, t):
         state, pstate = carry
-        action, pstate, _ = _act(policy, state, pstate, act_keys, t)
-        out = dict(image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
+        action, pstate, stats = _act(policy, state, pstate, act_keys, t)
+        out = dict(stats=stats, image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
                    ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel,
                    done=state.done)
         noise_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, t), 1))(act_keys)
