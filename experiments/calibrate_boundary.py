@@ -28,8 +28,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs import demos, language, tasks as tasks_lib
-from heisd_jax import checkpoint, hybrid, kinematics, methods, results_io, retrieval, vla, vla_policy
+from envs import demos, tasks as tasks_lib
+from heisd_jax import checkpoint, data, hybrid, kinematics, methods, results_io, retrieval, vla, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("demos", "data/demos", "The demonstrations the datastore was built from.")
@@ -46,26 +46,24 @@ flags.DEFINE_string("plot", "", "PNG of acceptance vs metric (default: <datastor
 flags.DEFINE_bool("overwrite", False, "Replace an existing boundary.json.")
 
 
-def _held_out_steps(ds: demos.DemoDataset, episodes: list[int], key_spec, tok, limit: int):
-    """Observations, keys, tasks, metric features and nearest distances of held-out steps."""
+def _held_out_steps(path: str, ds: demos.DemoDataset, episodes: list[int], key_spec, limit: int) -> dict:
+    """Observations, action histories, tasks and kinematic features of the held-out steps
+    (whole episodes in order, cut at `limit` steps)."""
     names = [t.name for t in tasks_lib.ALL_TASKS]
-    cols = {k: [] for k in ("image", "proprio", "instruction", "prev", "task", "feat")}
-    n = 0
+    chosen, n = [], 0
     for i in episodes:
-        ep, info = ds.episode(i), ds.episodes[i]
-        t = len(ep["action"])
-        v = np.asarray(ep["ee_vel"], np.float32)
-        prev_v = np.concatenate([np.zeros((1, 3), np.float32), v[:-1]])
-        cols["image"].append(np.asarray(ep["image"]))
-        cols["proprio"].append(np.asarray(ep["proprio"], np.float32))
-        cols["instruction"].append(np.repeat(np.asarray(language.encode(info["instruction"]))[None], t, 0))
-        cols["prev"].append(retrieval.episode_history(np.asarray(ep["action"], np.float32), key_spec.history))
-        cols["task"].append(np.full(t, names.index(info["task"]), np.int32))
-        cols["feat"].append(np.asarray(kinematics.features(v, ep["ee_ang_vel"], ep["ee_acc"], ep["gripper_vel"], prev_v)))
-        n += t
         if n >= limit:
             break
-    return {k: np.concatenate(v)[:limit] for k, v in cols.items()}
+        chosen.append(i)
+        n += ds.episodes[i]["length"]
+    table = data.load_steps(path, chosen)
+    prev = np.concatenate([retrieval.episode_history(np.asarray(ds.episode(i)["action"], np.float32),
+                                                     key_spec.history) for i in chosen])
+    task = np.concatenate([np.full(ds.episodes[i]["length"], names.index(ds.episodes[i]["task"]), np.int32)
+                           for i in chosen])
+    cols = dict(image=table.image, proprio=table.proprio, instruction=table.instruction, prev=prev, task=task,
+                feat=retrieval.demo_features(path, chosen))
+    return {k: v[:limit] for k, v in cols.items()}
 
 
 def main(argv):
@@ -91,7 +89,7 @@ def main(argv):
     cal = methods.load_calibration(FLAGS.datastore, meta)
     hcfg = methods.hybrid_config("heisd", settings, cal)
     hcfg.check_fits(cfg)
-    steps = _held_out_steps(ds, held, key_spec, tok, FLAGS.max_steps)
+    steps = _held_out_steps(FLAGS.demos, ds, held, key_spec, FLAGS.max_steps)
     metric = np.asarray(kinematics.fused_metric(jnp.asarray(steps["feat"]), hcfg.metric))
     p = {"target": params, "drafter": dparams, "store": store}
     b = FLAGS.batch

@@ -113,15 +113,6 @@ def candidate_block(cand: jnp.ndarray):
     return tokens, depth, jnp.broadcast_to(intra, (b, n * c, n * c))
 
 
-def _select(mask, new, old):
-    """Per-row select between two DecodeStates."""
-    leaves = (new.cache, new.dcache, new.root, new.feat, new.out, new.n_out)
-    olds = (old.cache, old.dcache, old.root, old.feat, old.out, old.n_out)
-    cache, dcache, root, feat, out, n_out = spec_decode._where_rows(mask, leaves, olds)
-    stats = {k: jnp.where(mask, new.stats[k], old.stats[k]) for k in new.stats}
-    return spec_decode.DecodeState(cache=cache, dcache=dcache, root=root, feat=feat, out=out, n_out=n_out, stats=stats)
-
-
 STAT_KEYS = ("target_passes", "drafter_passes", "rounds", "tokens", "retrieval_verified", "retrieval_accepted",
              "retrieval_whole", "skipped")
 
@@ -189,7 +180,7 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
                                  hidden=hid, cache=vla.commit(cache, chain, jnp.minimum(acc, c)))
         s1 = spec_decode.advance(tp, dp, cfg, s0, v)
         s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
-        s = _select(acc >= 1, s1, s0)
+        s = spec_decode.select_state(acc >= 1, s1, s0)
         s = dataclasses.replace(s, n_out=jnp.where(skip, ACTION_DIM, s.n_out))  # skipped rows are done
         s = spec_decode.rounds(tp, dp, cfg, hcfg.spec, s)
         out = jnp.where(skip[:, None], cand[:, 0], s.out[:, :ACTION_DIM])

@@ -260,10 +260,16 @@ def advance(tparams, dparams, cfg: vla.VLAConfig, s: DecodeState, v: Verified) -
     dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)
     feat = jnp.take_along_axis(feats, v.n_accepted[:, None, None], 1)[:, 0]
     root = jnp.take_along_axis(v.tokens, v.n_accepted[:, None], 1)[:, 0]
-    new = (v.cache, dc, root, feat, out, n_out)
-    old = (s.cache, s.dcache, s.root, s.feat, s.out, s.n_out)
-    cache, dcache, root, feat, out, n_out = _where_rows(active, new, old)
-    return DecodeState(cache=cache, dcache=dcache, root=root, feat=feat, out=out, n_out=n_out, stats=s.stats)
+    new = DecodeState(cache=v.cache, dcache=dc, root=root, feat=feat, out=out, n_out=n_out, stats=s.stats)
+    return select_state(active, new, s)
+
+
+def select_state(mask: jnp.ndarray, new: DecodeState, old: DecodeState) -> DecodeState:
+    """Per row: `new` where mask [B] holds, else `old`."""
+    leaves = _where_rows(mask, (new.cache, new.dcache, new.root, new.feat, new.out, new.n_out),
+                         (old.cache, old.dcache, old.root, old.feat, old.out, old.n_out))
+    stats = {k: jnp.where(mask, new.stats[k], old.stats[k]) for k in new.stats}
+    return DecodeState(*leaves, stats=stats)
 
 
 def rounds(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
