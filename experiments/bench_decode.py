@@ -32,7 +32,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos
-from experiments.timing import median_seconds
+from heisd_jax.timing import median_seconds
 from heisd_jax import checkpoint, data, spec_decode, vla, vla_policy
 
 FLAGS = flags.FLAGS

@@ -34,7 +34,7 @@ from flax import struct
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from experiments.timing import median_seconds
+from heisd_jax.timing import median_seconds
 from heisd_jax import checkpoint, methods, retrieval, vla_policy
 
 FLAGS = flags.FLAGS

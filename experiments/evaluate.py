@@ -22,7 +22,7 @@ from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
+from heisd_jax import budget, cost_model, evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -50,16 +50,25 @@ flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict
 flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
 flags.DEFINE_float("tau_on", None, "Boundary: metric above which the drafter mode starts (default: the calibration).")
 flags.DEFINE_float("tau_off", None, "Boundary: metric below which the retrieval mode starts.")
+flags.DEFINE_enum("budget", None, list(budget.BUDGETS),
+                  "retrieval/heisd: draft budget chosen per step from measured costs (auto; heisd default) or the "
+                  "one fixed tree (fixed).")
+flags.DEFINE_string("budget_trees", None, "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
+                    "separated by '/' (default: the --top_k/--depth/--total_tokens tree if given, else 4x2x8/8x4x32).")
+flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "VLA methods: parameters and KV cache in this dtype (default float32).")
+flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
+                    "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off")
+                "retrieval_relax_bins", "n_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off", "budget",
+                "budget_trees", "dtype")
 
 
 def method_settings() -> dict:
     """The method's own settings from the flags that were given (validated: a clear error
     before anything loads or compiles)."""
     given = {k: getattr(FLAGS, k) for k in METHOD_FLAGS if getattr(FLAGS, k) is not None}
-    if FLAGS.method in ("expert", "ar"):
+    if FLAGS.method == "expert" or (FLAGS.method == "ar" and set(given) - {"dtype"}):
         if given:
             raise app.UsageError(f"--method={FLAGS.method} takes none of --{', --'.join(given)}")
         return {}
@@ -92,7 +101,8 @@ def main(argv):
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                     datastore=FLAGS.datastore, **kwargs)
+                                     datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
+                                     cost_cache=FLAGS.cost_cache or None, **kwargs)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     n_total = len(task_list) * cfg.episodes_per_task
@@ -103,6 +113,12 @@ def main(argv):
     # Wall-clock of this invocation's batches (a resumed run times only what it ran).
     timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "batches": 0,
               "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
+
+    table = policy.meta.get("cost_table")
+    if table is not None:
+        print(table.report())
+        timing["cost_table"] = {"options": table.options, "fixed_ms": table.fixed_ms, "round_ms": table.round_ms,
+                                "ceiling_ar_over_prefill": table.ceiling}
 
     def write(results):
         summary = ev.summarize(env.tasks, results)

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from heisd_jax import acceptance as rules, kinematics, retrieval, spec_decode, vla
+from heisd_jax import acceptance as rules, budget as budget_lib, kinematics, retrieval, spec_decode, vla
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 MODES = ("hybrid", "retrieval", "drafter")  # hybrid: kinematic boundary; else every step in that mode
@@ -58,6 +58,7 @@ class HybridConfig:
     skip: rules.SkipConfig = rules.SkipConfig()
     metric: kinematics.MetricConfig = kinematics.MetricConfig()
     boundary: kinematics.BoundaryConfig = kinematics.BoundaryConfig()
+    budget: budget_lib.BudgetConfig = budget_lib.BudgetConfig()  # auto: `spec`'s tree is replaced per step
 
     def __post_init__(self):
         _check("mode", self.mode, MODES)
@@ -82,6 +83,9 @@ class HybridConfig:
 
     def check_fits(self, cfg: vla.VLAConfig):
         self.spec.check_fits(cfg)
+        if self.budget.mode == "auto":
+            for tree in self.budget.trees:
+                budget_lib.tree_spec(self.spec, tree).check_fits(cfg)
         need = cfg.prompt_len + self.n_candidates * (ACTION_DIM - 1)
         if need > cfg.cache_slots:
             raise ValueError(f"{self.n_candidates} retrieval candidates need {need} cache slots, the model has "
@@ -201,6 +205,47 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
     return tokens, stats
 
 
+def decode_ar(params, cfg: vla.VLAConfig, obs: vla.Observation, cand: jnp.ndarray, skip: jnp.ndarray):
+    """`decode`'s contract with plain AR for the rows that do not skip (no drafting at all)."""
+    b = cand.shape[0]
+
+    def with_target(_):
+        tokens, passes = vla.ar_decode(params["target"], cfg, obs)
+        return jnp.where(skip[:, None], cand[:, 0], tokens), jnp.where(skip, 0.0, float(passes))
+
+    tokens, passes = jax.lax.cond(jnp.any(~skip), with_target,
+                                  lambda _: (cand[:, 0], jnp.zeros((b,), jnp.float32)), None)
+    z = jnp.zeros((b,), jnp.float32)
+    return tokens, {"target_passes": passes, "drafter_passes": z, "rounds": z, "retrieval_accepted": z,
+                    "tokens": jnp.full((b,), ACTION_DIM, jnp.float32), "retrieval_verified": z,
+                    "retrieval_whole": z, "skipped": skip.astype(jnp.float32)}
+
+
+def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_lib.BudgetState,
+                obs: vla.Observation, cand: jnp.ndarray, cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray,
+                skip: jnp.ndarray):
+    """`decode` under the budget chosen for this step (`heisd_jax.budget`; params["costs"]:
+    a `budget.Costs`). Returns tokens, stats (with a one-hot `budget_<option>` per row) and
+    the updated budget state."""
+    opts = budget_lib.options(hcfg.budget, hcfg.mode)
+    trees = hcfg.budget.trees
+    any_retrieval = jnp.any(use_retrieval & ~skip)
+    o = budget_lib.choose(params["costs"], bstate, opts, any_retrieval)
+    wants_retrieval = jnp.asarray([opt.retrieval for opt in opts])[o]
+
+    def tree_branch(tree):
+        hc = dataclasses.replace(hcfg, spec=budget_lib.tree_spec(hcfg.spec, tree))
+        return lambda _: decode(params, cfg, hc, obs, cand, cand_valid, use_retrieval & wants_retrieval, skip)
+
+    branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)] + [tree_branch(t) for t in trees]
+    tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[o], branches, None)
+    bstate = budget_lib.update(hcfg.budget, bstate, opts, o, jnp.max(stats["rounds"]))
+    b = cand.shape[0]
+    for i, opt in enumerate(opts):
+        stats[f"budget_{opt.name}"] = jnp.full((b,), o == i, jnp.float32)
+    return tokens, stats, bstate
+
+
 @struct.dataclass
 class HybridState:
     """What the HeiSD step carries from one control step to the next, per env."""
@@ -209,12 +254,16 @@ class HybridState:
     boundary: kinematics.BoundaryState
     skips: jnp.ndarray  # [B] consecutive skipped target passes
     last_whole: jnp.ndarray  # [B] the last verified retrieval action was accepted whole
+    budget: budget_lib.BudgetState | None = None  # batch-wide running estimates (budget "auto" only)
 
 
-def init_state(batch: int, key_spec: retrieval.KeySpec) -> HybridState:
+def init_state(batch: int, key_spec: retrieval.KeySpec, hcfg: HybridConfig | None = None) -> HybridState:
+    bstate = None
+    if hcfg is not None and hcfg.budget.mode == "auto":
+        bstate = budget_lib.init_state(budget_lib.options(hcfg.budget, hcfg.mode))
     return HybridState(prev_actions=jnp.zeros((batch, key_spec.history, ACTION_DIM), jnp.float32),
                        prev_lin_vel=jnp.zeros((batch, 3), jnp.float32), boundary=kinematics.boundary_init((batch,)),
-                       skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool))
+                       skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool), budget=bstate)
 
 
 @struct.dataclass
@@ -228,8 +277,9 @@ class Kinematics:
 
 def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.KeySpec, tok: ActionTokenizer,
          state: HybridState, obs: vla.Observation, kin: Kinematics, task: jnp.ndarray):
-    """One HeiSD control step for a batch of envs. params: {"target", "drafter", "store"};
-    task [B]: global task indices (the datastore's). Returns (actions [B, 7] continuous,
+    """One HeiSD control step for a batch of envs. params: {"target", "drafter", "store"}
+    (+ "costs", a `budget.Costs`, with budget "auto": then `state` comes from
+    `init_state(..., hcfg)`); task [B]: global task indices (the datastore's). Returns (actions [B, 7] continuous,
     token ids [B, 7], the next state, per-row stats: `decode`'s plus the metric and the
     mode shares)."""
     metric = kinematics.fused_metric(
@@ -246,7 +296,14 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
     skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
                                state.skips)
-    tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
+    bstate = state.budget
+    if hcfg.budget.mode == "auto":
+        if bstate is None or "costs" not in params:
+            raise ValueError('budget "auto" needs params["costs"] (cost_model.load_or_calibrate(...).costs()) and a '
+                             "state from init_state(batch, key_spec, hcfg)")
+        tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, obs, cand, valid, use_retrieval, skip)
+    else:
+        tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
     actions = tok.decode(tokens)
     whole = stats["retrieval_whole"] > 0
     history = state.prev_actions
@@ -256,6 +313,6 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         prev_actions=history,
         prev_lin_vel=kin.lin_vel.astype(jnp.float32), boundary=boundary,
         skips=jnp.where(skip, state.skips + 1, 0),
-        last_whole=jnp.where(skip, state.last_whole, whole))
+        last_whole=jnp.where(skip, state.last_whole, whole), budget=bstate)
     stats = dict(stats, metric=metric, drafter_mode=(~use_retrieval).astype(jnp.float32))
     return actions, tokens, new, stats

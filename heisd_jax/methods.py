@@ -7,16 +7,22 @@ methods (drafter, retrieval, heisd) register here as they land.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import Callable
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from envs import expert, tasks as tasks_lib
 from envs.env import TabletopEnv
 from envs.rollout import Policy
-from heisd_jax import acceptance, checkpoint, hybrid, kinematics, retrieval, spec_decode, vla_policy
+from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, spec_decode, vla,
+                       vla_policy)
+
+DTYPES = ("float32", "bfloat16")
 
 
 def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
@@ -27,34 +33,52 @@ def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
     return params, cfg, tok
 
 
+def in_dtype(cfg: vla.VLAConfig, dtype: str, *params):
+    """The model config and parameter trees in compute dtype `dtype` (float32, bfloat16):
+    parameters and KV caches are stored in it. Call after loading (fingerprints, which tie
+    drafters and datastores to a target, are of the stored float32 parameters)."""
+    if dtype not in DTYPES:
+        raise ValueError(f"unknown dtype {dtype!r}; valid: {', '.join(DTYPES)}")
+    cast = lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x  # noqa: E731
+    return (vla.VLAConfig(**{**cfg.__dict__, "dtype": dtype}), *(jax.tree.map(cast, p) for p in params))
+
+
 def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]:
-    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT) -> Policy:
-        return vla_policy.decoding_policy(name, *_load_target(env, checkpoint_path), decode)
+    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
+             dtype: str = "float32") -> Policy:
+        params, cfg, tok = _load_target(env, checkpoint_path)
+        cfg, params = in_dtype(cfg, dtype, params)
+        return vla_policy.decoding_policy(name, params, cfg, tok, decode)
     return make
 
 
 def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
-                    drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER, **spec_settings) -> Policy:
+                    drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER, dtype: str = "float32",
+                    **spec_settings) -> Policy:
     """Spec-VLA: EAGLE-2 tree drafts from the drafter, verified by the target."""
     spec = spec_decode.SpecConfig(**spec_settings)
     params, cfg, tok = _load_target(env, checkpoint_path)
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
+    cfg, params, dparams = in_dtype(cfg, dtype, params, dparams)
     return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
                                       vla_policy.drafter_sd(spec), spec=spec)
 
 
+COMMON_SETTINGS = {"dtype": str}  # every VLA method
 SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}
 HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bins": int, "n_candidates": int,
                    "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
-                   "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int}
+                   "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
+                   "budget": str, "budget_trees": str}
 # Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
-# token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance.
+# token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance,
+# and (issue 9) chooses its draft budget per step from measured costs (budget=auto).
 HYBRID_DEFAULTS = {
     "retrieval": {"mode": "retrieval", "retrieval_acceptance": "token_relaxed", "skip": False,
-                  "acceptance": "token_relaxed", "relax_bins": 9},
+                  "acceptance": "token_relaxed", "relax_bins": 9, "budget": "fixed"},
     "heisd": {"mode": "hybrid", "retrieval_acceptance": "seq_relaxed", "skip": True,
-              "acceptance": "token_relaxed", "relax_bins": 9},
+              "acceptance": "token_relaxed", "relax_bins": 9, "budget": "auto"},
 }
 BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
 
@@ -75,21 +99,20 @@ def check_settings(name: str, settings: dict) -> dict:
     values), before anything loads or compiles."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    valid = {"drafter": SPEC_SETTINGS, "retrieval": {**SPEC_SETTINGS, **HYBRID_SETTINGS},
-             "heisd": {**SPEC_SETTINGS, **HYBRID_SETTINGS}}.get(name)
     if name == "expert":
         return dict(settings)
-    if valid is None:
-        if settings:
-            raise ValueError(f"method {name!r} takes no settings, got {settings}")
-        return {}
+    valid = {"drafter": SPEC_SETTINGS, "retrieval": {**SPEC_SETTINGS, **HYBRID_SETTINGS},
+             "heisd": {**SPEC_SETTINGS, **HYBRID_SETTINGS}}.get(name, {})
+    valid = {**COMMON_SETTINGS, **valid}
     unknown = sorted(set(settings) - set(valid))
     if unknown:
         raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(valid)}")
     out = {k: _cast(k, v, valid[k]) for k, v in settings.items()}
+    if out.get("dtype", "float32") not in DTYPES:
+        raise ValueError(f"unknown dtype {out['dtype']!r}; valid: {', '.join(DTYPES)}")
     if name == "drafter":
-        spec_decode.SpecConfig(**out)
-    else:
+        spec_decode.SpecConfig(**{k: v for k, v in out.items() if k in SPEC_SETTINGS})
+    elif name in HYBRID_DEFAULTS:
         hybrid_config(name, out)
     return out
 
@@ -115,7 +138,26 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
         spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"],
         relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
         n_candidates=s.get("n_candidates", 4), max_dist=s.get("max_dist", float("inf")),
-        verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd))
+        verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
+        budget=budget_config(s, settings))
+
+
+def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
+    """budget=auto chooses per step among AR and the trees of `budget_trees` (default: the
+    tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
+    mode = s.get("budget", "fixed")
+    if mode != "auto":
+        if "budget_trees" in given:
+            raise ValueError("budget_trees is only used with budget=auto")
+        return budget.BudgetConfig(mode=mode)
+    if "budget_trees" in s:
+        trees = budget.parse_trees(s["budget_trees"])
+    elif any(k in given for k in ("top_k", "depth", "total_tokens")):
+        sp = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens") if k in s})
+        trees = ((sp.top_k, sp.depth, sp.total_tokens),)
+    else:
+        trees = budget.DEFAULT_TREES
+    return budget.BudgetConfig(mode="auto", trees=trees)
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
@@ -136,8 +178,13 @@ def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
 def _hybrid_method(name: str):
     def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
              drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER,
-             datastore_path: str | Path = vla_policy.DEFAULT_DATASTORE, **settings) -> Policy:
+             datastore_path: str | Path = vla_policy.DEFAULT_DATASTORE, batch_size: int | None = None,
+             cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, log: Callable[[str], None] = print,
+             **settings) -> Policy:
+        """batch_size: rows per device of the decode step (budget=auto measures its costs at
+        that size, cached in `cost_cache`; None there: measured, never cached)."""
         settings = check_settings(name, settings)
+        dtype = settings.pop("dtype", "float32")
         params, cfg, tok = _load_target(env, checkpoint_path)
         dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
         store, key_spec, meta = retrieval.load(datastore_path, tok, checkpoint.fingerprint(params))
@@ -147,8 +194,17 @@ def _hybrid_method(name: str):
                              f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
         hcfg = hybrid_config(name, settings, load_calibration(datastore_path, meta))
         hcfg.check_fits(cfg)
-        return vla_policy.hybrid_policy(name, {"target": params, "drafter": dparams, "store": store}, cfg, tok, hcfg,
-                                        key_spec, env.global_index)
+        cfg, params, dparams = in_dtype(cfg, dtype, params, dparams)
+        all_params = {"target": params, "drafter": dparams, "store": store}
+        table = None
+        if hcfg.budget.mode == "auto":
+            if batch_size is None or batch_size < 1:
+                raise ValueError(f"budget=auto measures decode costs at the batch size in use: pass batch_size "
+                                 f"(rows per device), got {batch_size}")
+            table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log)
+            all_params["costs"] = table.costs()
+        policy = vla_policy.hybrid_policy(name, all_params, cfg, tok, hcfg, key_spec, env.global_index)
+        return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table))
     make.__doc__ = f"`{name}`: retrieval drafts (datastore) and drafter SD (see heisd_jax.hybrid)."
     return make
 
@@ -169,13 +225,18 @@ CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "draft
 
 
 def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = None,
-                drafter: str | Path | None = None, datastore: str | Path | None = None, **settings) -> Policy:
-    """The policy of method `name`; `checkpoint`/`drafter` (default: the shipped ones) reach
-    only the methods that load them, `settings` are the method's own options."""
+                drafter: str | Path | None = None, datastore: str | Path | None = None,
+                batch_size: int | None = None, cost_cache: str | Path | None = cost_model.DEFAULT_CACHE,
+                **settings) -> Policy:
+    """The policy of method `name`; `checkpoint`/`drafter`/`datastore` (default: the shipped
+    ones) reach only the methods that load them, `settings` are the method's own options;
+    batch_size (rows per device) and cost_cache reach the methods with a draft budget."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
     given = {"checkpoint_path": checkpoint, "drafter_path": drafter, "datastore_path": datastore}
     paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
+    if name in HYBRID_DEFAULTS:
+        paths.update(batch_size=batch_size, cost_cache=cost_cache)
     return METHODS[name](env, **paths, **settings)
 
 

@@ -272,19 +272,22 @@ def select_state(mask: jnp.ndarray, new: DecodeState, old: DecodeState) -> Decod
     return DecodeState(*leaves, stats=stats)
 
 
+def round_step(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
+    """One draft-verify round for every row (rows already holding 7 tokens are unchanged)."""
+    active = (s.n_out < ACTION_DIM).astype(jnp.float32)
+    tree = draft_tree(dparams, tparams, cfg, spec, s.dcache, s.feat)
+    v = verify(tparams, cfg, spec, s.cache, s.root, tree, select_nodes(tree, spec.total_tokens))
+    s = advance(tparams, dparams, cfg, s, v)
+    stats = {**s.stats, "target_passes": s.stats["target_passes"] + active,
+             "drafter_passes": s.stats["drafter_passes"] + spec.depth * active,
+             "rounds": s.stats["rounds"] + active}
+    return dataclasses.replace(s, stats=stats)
+
+
 def rounds(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
     """Draft-verify rounds until every row holds 7 tokens (a `lax.while_loop`)."""
-    def body(s):
-        active = (s.n_out < ACTION_DIM).astype(jnp.float32)
-        tree = draft_tree(dparams, tparams, cfg, spec, s.dcache, s.feat)
-        v = verify(tparams, cfg, spec, s.cache, s.root, tree, select_nodes(tree, spec.total_tokens))
-        s = advance(tparams, dparams, cfg, s, v)
-        stats = {**s.stats, "target_passes": s.stats["target_passes"] + active,
-                 "drafter_passes": s.stats["drafter_passes"] + spec.depth * active,
-                 "rounds": s.stats["rounds"] + active}
-        return dataclasses.replace(s, stats=stats)
-
-    return jax.lax.while_loop(lambda s: jnp.any(s.n_out < ACTION_DIM), body, s)
+    return jax.lax.while_loop(lambda s: jnp.any(s.n_out < ACTION_DIM),
+                              lambda s: round_step(tparams, dparams, cfg, spec, s), s)
 
 
 def spec_decode(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, obs: vla.Observation):

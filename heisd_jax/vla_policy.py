@@ -61,13 +61,13 @@ def drafter_sd(spec):
 def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, hcfg, key_spec,
                   global_task_index) -> Policy:
     """The HeiSD step (`heisd_jax.hybrid`) as a policy. params: {"target", "drafter",
-    "store"}; global_task_index [n_tasks]: the datastore's task index of each env task."""
+    "store"} (+ "costs" for budget "auto"); global_task_index [n_tasks]: the datastore's task index of each env task."""
     from heisd_jax import hybrid  # noqa: PLC0415
 
     gidx = jnp.asarray(global_task_index, jnp.int32)
 
     def init(params, states):
-        return hybrid.init_state(states.step.shape[0], key_spec)
+        return hybrid.init_state(states.step.shape[0], key_spec, hcfg)
 
     def act(params, states, pstate, keys):
         kin = hybrid.Kinematics(lin_vel=states.kin.lin_vel, ang_vel=states.kin.ang_vel, lin_acc=states.kin.lin_acc,

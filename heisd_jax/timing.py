@@ -1,4 +1,4 @@
-"""Wall-clock helpers shared by the benchmark scripts."""
+"""Wall-clock helpers shared by the benchmark scripts and the cost-model calibration."""
 
 from __future__ import annotations
 

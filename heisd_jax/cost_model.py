@@ -1,0 +1,211 @@
+"""The measured cost model behind `budget="auto"` (issue 9): latencies of the target's and
+the drafter's passes, and of each budget option's round and fixed part, measured on the
+device in use at the batch size in use, cached on disk.
+
+Every latency is an *in-graph* cost: the piece runs inside one jitted loop n1 and n2 times
+(one compile, the trip count is an argument) and the cost is the difference over n2 - n1,
+so the ~0.1-1.5 ms of dispatch per jitted call (which a real decode pays once per action,
+not per pass) is not counted per pass. The loop carries its inputs through an optimization
+barrier, so XLA can neither hoist the work out of the loop nor drop it.
+
+A table is tied to its key (device, platform, jax version, model fingerprints, dtype, batch
+size, options, number of candidates). `load_or_calibrate` reads the cached file only if its
+key equals the current one; otherwise (another device, model or batch size, a damaged file)
+it measures again and replaces the file atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from heisd_jax import budget, checkpoint, drafter, hybrid, spec_decode, vla
+from heisd_jax.timing import median_seconds
+from heisd_jax.tokenizer import ACTION_DIM, N_BINS
+
+FORMAT = 1
+DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
+
+
+def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 5) -> float:
+    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc)."""
+    def loop(count, args):
+        def body(_, carry):
+            args, acc = carry
+            out = fn(*args)
+            args, out = jax.lax.optimization_barrier((args, out))
+            leaf = jax.tree.leaves(out)[0]
+            return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32)
+        return jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32)))[1]
+
+    f = jax.jit(loop)
+    t1 = median_seconds(lambda: f(n[0], args), reps)
+    t2 = median_seconds(lambda: f(n[1], args), reps)
+    return 1e3 * max(t2 - t1, 0.0) / (n[1] - n[0])
+
+
+def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: int = 0):
+    """Random observations and retrieved candidates of the right shapes (costs do not depend
+    on the values; acceptance, which does, is estimated online by `budget`)."""
+    rng = np.random.default_rng(seed)
+    obs = vla.Observation(
+        image=jnp.asarray(rng.integers(0, 256, (batch, cfg.image_size, cfg.image_size, 3)), jnp.uint8),
+        instruction=jnp.asarray(rng.integers(1, cfg.text_vocab, (batch, cfg.text_len)), jnp.int32),
+        proprio=jnp.asarray(rng.normal(size=(batch, cfg.proprio_dim)), jnp.float32))
+    cand = jnp.asarray(rng.integers(0, N_BINS, (batch, n_candidates, ACTION_DIM)) + cfg.first_action_id, jnp.int32)
+    return obs, cand
+
+
+def table_key(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict:
+    dev = jax.devices()[0]
+    return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
+            "target": checkpoint.fingerprint(params["target"]), "drafter": checkpoint.fingerprint(params["drafter"]),
+            "dtype": cfg.dtype, "batch": int(batch), "n_candidates": hcfg.n_candidates, "verify": hcfg.verify,
+            "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}
+
+
+@dataclasses.dataclass
+class CostTable:
+    key: dict
+    options: list[str]
+    fixed_ms: list[float]  # per option (see budget)
+    round_ms: list[float]
+    decode_ms: list[float]  # the option's whole decode on the calibration inputs
+    decode_rounds: list[float]  # ... and the draft rounds it needed there
+    pieces: dict  # prefill_ms {appended tokens: ms}, cached_ms {T: ms}, drafter_ms {T: ms}, drafter_prompt_ms
+    seconds: float  # how long the calibration took
+
+    def costs(self) -> budget.Costs:
+        return budget.Costs(fixed_ms=jnp.asarray(self.fixed_ms, jnp.float32),
+                            round_ms=jnp.asarray(self.round_ms, jnp.float32))
+
+    @property
+    def ceiling(self) -> float:
+        """AR / prefill: the most any method that still prefills every action can gain."""
+        return self.decode_ms[0] / self.pieces["prefill_ms"]["0"]
+
+    def report(self) -> str:
+        p = self.pieces
+        lines = [f"cost table: {self.key['device']}, batch {self.key['batch']}, {self.key['dtype']} "
+                 f"(calibrated in {self.seconds:.1f}s)",
+                 "  prefill + appended tokens: " + ", ".join(f"+{k}: {v:.3f}" for k, v in p["prefill_ms"].items()) + " ms",
+                 "  cached target pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["cached_ms"].items()) + " ms",
+                 "  drafter pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["drafter_ms"].items())
+                 + f" ms; drafter prompt pass {p['drafter_prompt_ms']:.3f} ms",
+                 f"  ceiling AR / prefill: {self.ceiling:.2f}x"]
+        for i, name in enumerate(self.options):
+            lines.append(f"  {name:<22} fixed {self.fixed_ms[i]:7.3f} ms + rounds x {self.round_ms[i]:6.3f} ms "
+                         f"(whole decode {self.decode_ms[i]:.3f} ms at {self.decode_rounds[i]:.0f} rounds)")
+        return "\n".join(lines)
+
+
+def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int, reps: int = 5) -> CostTable:
+    """Measures the cost table (seconds to a minute: one compile per piece)."""
+    t_start = time.perf_counter()
+    tp, dp = params["target"], params["drafter"]
+    n = hcfg.n_candidates
+    obs, cand = synthetic_inputs(cfg, batch, n)
+    valid = jnp.ones(cand.shape[:2], bool)
+    ms = lambda fn, *args: in_graph_ms(fn, args, reps=reps)  # noqa: E731
+
+    pieces = {"prefill_ms": {"0": ms(lambda tp, obs: vla.prefill_features(tp, cfg, obs)[0], tp, obs)}}
+    for m in sorted({1, n}):
+        block = hybrid.candidate_block(cand[:, :m])
+        pieces["prefill_ms"][str(m * (ACTION_DIM - 1))] = ms(
+            lambda tp, obs, block: vla.prefill_with_block(tp, cfg, obs, *block)[3], tp, obs, block)
+    _, hidden, x, cache = jax.jit(lambda tp, obs: vla.prefill_features(tp, cfg, obs))(tp, obs)
+    largest = max(t[2] for t in hcfg.budget.trees) + 1
+    pieces["cached_ms"] = {}
+    for t in sorted({1, 2, 4, 8, 16, 32, largest}):
+        if t > largest:
+            continue
+        toks = jnp.full((batch, t), cfg.first_action_id, jnp.int32)
+        depth = jnp.broadcast_to(jnp.arange(t), (batch, t))
+        intra = jnp.broadcast_to(jnp.tril(jnp.ones((t, t), bool)), (batch, t, t))
+        pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: vla.decode(tp, cfg, c, a, b, i)[0],
+                                         tp, cache, toks, depth, intra)
+    key_ok = vla.prompt_key_mask(cfg, obs.instruction)
+    root_emb = vla.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))
+    pieces["drafter_prompt_ms"] = ms(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e)[0],
+                                     dp, x, hidden, key_ok, root_emb)
+    _, dcache = jax.jit(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e))(dp, x, hidden, key_ok, root_emb)
+    pieces["drafter_ms"] = {}
+    for t in sorted({k for k, _, _ in hcfg.budget.trees} | {ACTION_DIM}):
+        emb = jnp.zeros((batch, t, cfg.d_model), cfg.dtype)
+        pos = jnp.broadcast_to(cfg.prompt_len + jnp.arange(t), (batch, t))
+        mask = jnp.ones((batch, t, cfg.cache_slots), bool)
+        pieces["drafter_ms"][str(t)] = ms(
+            lambda dp, c, e, p, m: drafter.step(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
+
+    opts = budget.options(hcfg.budget, hcfg.mode)
+    fixed, rnd, whole, nrounds = [], [], [], []
+    state0 = {}
+    for o in opts:
+        if o.tree is None:
+            whole.append(ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs))
+            fixed.append(whole[-1]), rnd.append(0.0), nrounds.append(0.0)
+            continue
+        spec = budget.tree_spec(hcfg.spec, o.tree)
+        hc = dataclasses.replace(hcfg, spec=spec)
+        use = jnp.full((batch,), o.retrieval)
+        skip = jnp.zeros((batch,), bool)
+        dec = lambda p, obs, cand, valid, use, skip: hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)  # noqa: E731,B023
+        whole.append(ms(dec, params, obs, cand, valid, use, skip))
+        nrounds.append(float(np.max(jax.jit(dec)(params, obs, cand, valid, use, skip)[1]["rounds"])))
+        if o.tree not in state0:  # one round of this tree, from the state after the prefill
+            s0 = jax.jit(lambda tp, dp, obs: spec_decode.start(
+                tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)  # noqa: B023
+            state0[o.tree] = ms(lambda tp, dp, s: spec_decode.round_step(tp, dp, cfg, spec, s).out,  # noqa: B023
+                                tp, dp, s0)
+        rnd.append(state0[o.tree])
+        fixed.append(max(whole[-1] - nrounds[-1] * rnd[-1], pieces["prefill_ms"]["0"]))
+    return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
+                     round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
+                     seconds=time.perf_counter() - t_start)
+
+
+def cache_file(directory: str | Path, key: dict) -> Path:
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(directory) / f"costs_{digest}.json"
+
+
+def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
+                      directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print) -> CostTable:
+    """The cached table for this key, or a fresh calibration (then cached). directory=None:
+    always calibrate, write nothing."""
+    key = table_key(params, cfg, hcfg, batch)
+    path = cache_file(directory, key) if directory is not None else None
+    if path is not None and path.exists():
+        try:
+            raw = json.loads(path.read_text())
+            table = CostTable(**raw)
+            if table.key == key and len(table.fixed_ms) == len(key["options"]):
+                log(f"cost table from {path}")
+                return table
+            log(f"cost table {path} was measured for another setting ({_diff(table.key, key)}): measuring again")
+        except (OSError, ValueError, TypeError) as e:
+            log(f"cost table {path} is unreadable ({e}): measuring again")
+    table = calibrate(params, cfg, hcfg, batch)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+        with os.fdopen(fd, "w") as f:
+            json.dump(dataclasses.asdict(table), f, indent=1)
+        os.replace(tmp, path)
+        log(f"cost table measured in {table.seconds:.1f}s, saved to {path}")
+    return table
+
+
+def _diff(old: dict, new: dict) -> str:
+    keys = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
+    return ", ".join(f"{k}: {old.get(k)!r} != {new.get(k)!r}" for k in keys) or "same key"

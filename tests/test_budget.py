@@ -1,0 +1,181 @@
+"""Batch-aware draft budgets (issue 9): the chooser on synthetic cost tables, strict decoding
+identical to AR under every budget option, the measured cost table and its on-disk cache
+(a stale or damaged file is measured again), bfloat16 strict == bfloat16 AR."""
+
+import dataclasses
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, vla
+
+from test_hybrid import B, _candidates
+from test_spec_decode import CFG, _aligned_pair, _ar, _obs
+
+TREES = ((2, 1, 2), (2, 2, 4))
+AUTO = hybrid.HybridConfig(spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4), mode="hybrid", acceptance="strict",
+                           n_candidates=3, skip=acceptance.SkipConfig(enabled=False),
+                           budget=budget.BudgetConfig(mode="auto", trees=TREES))
+OPTS = budget.options(AUTO.budget, AUTO.mode)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    tp, dp = _aligned_pair(0.35)
+    obs = _obs(7, batch=B)
+    return {"target": tp, "drafter": dp}, obs, np.asarray(_ar(tp, obs))
+
+
+def _costs(fixed, rounds):
+    return budget.Costs(fixed_ms=jnp.asarray(fixed, jnp.float32), round_ms=jnp.asarray(rounds, jnp.float32))
+
+
+def test_options_and_chooser_on_synthetic_cost_tables():
+    assert [o.name for o in OPTS] == ["ar", "2x1x2", "2x1x2+retrieval", "2x2x4", "2x2x4+retrieval"]
+    assert [o.name for o in budget.options(AUTO.budget, "drafter")] == ["ar", "2x1x2", "2x2x4"]
+    state = budget.init_state(OPTS)
+    np.testing.assert_array_equal(np.asarray(state.rounds), [0, 3, 0, 2, 0])  # optimistic priors
+    # Drafting cannot win: every tree's fixed part alone costs more than AR.
+    slow = _costs([1.0, 1.2, 1.3, 1.2, 1.3], [0.1] * 5)
+    assert int(budget.choose(slow, state, OPTS, jnp.asarray(True))) == 0
+    # Verification is (nearly) free: the deepest tree, which needs the fewest rounds.
+    free = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.0, 0.01, 0.01, 0.01, 0.01])
+    state = dataclasses.replace(state, rounds=jnp.asarray([0.0, 6.0, 5.0, 3.0, 2.0]))
+    assert int(budget.choose(free, state, OPTS, jnp.asarray(True))) == 4
+    # A retrieval option is not eligible on a step where no row verifies retrieval.
+    assert int(budget.choose(free, state, OPTS, jnp.asarray(False))) == 3
+
+
+def test_running_estimates():
+    cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, explore=0.1)
+    s = budget.init_state(OPTS)
+    s = budget.update(cfg, s, OPTS, 1, 5.0)  # first observation replaces the prior
+    assert float(s.rounds[1]) == 5.0 and float(s.runs[1]) == 1
+    s = budget.update(cfg, s, OPTS, 1, 3.0)
+    assert float(s.rounds[1]) == 4.0 and float(s.runs[1]) == 2
+    s = budget.update(cfg, s, OPTS, 3, 6.0)  # option 1 not chosen: drifts towards its prior 3
+    assert float(s.rounds[1]) == pytest.approx(4.0 + 0.1 * (3.0 - 4.0))
+    assert float(s.rounds[3]) == 6.0
+
+
+_auto = jax.jit(hybrid.decode_auto, static_argnums=(1, 2))
+
+
+@pytest.mark.parametrize("verify", ["prefill", "separate"])
+def test_strict_equals_ar_under_every_budget_option(setup, verify):
+    params, obs, ar_tokens = setup
+    cand, _ = _candidates(ar_tokens, np.random.default_rng(3))
+    hcfg = dataclasses.replace(AUTO, verify=verify)
+    assert hcfg.lossless
+    use = jnp.array([True, True, True, False, True, True])  # rows accept 7, 0, 3, -, 1, 7 retrieval tokens
+    valid = jnp.ones((B, 3), bool)
+    skip = jnp.zeros((B,), bool)
+    for i, opt in enumerate(OPTS):
+        forced = _costs([0.0 if j == i else 1.0 for j in range(len(OPTS))], [0.0] * len(OPTS))
+        p = dict(params, costs=forced)
+        tokens, stats, bstate = _auto(p, CFG, hcfg, budget.init_state(OPTS), obs, cand, valid, use, skip)
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens, err_msg=opt.name)
+        assert np.all(np.asarray(stats[f"budget_{opt.name}"]) == 1.0)
+        assert float(bstate.runs[i]) == 1 and float(jnp.sum(bstate.runs)) == 1
+        passes = np.asarray(stats["target_passes"])
+        if opt.tree is None:
+            np.testing.assert_array_equal(passes, 7)
+        verified = np.asarray(stats["retrieval_verified"])
+        np.testing.assert_array_equal(verified, np.asarray(use) if opt.retrieval else 0)
+
+
+def test_step_with_auto_budget_keeps_its_state(setup):
+    params, obs, ar_tokens = setup
+    from heisd_jax import kinematics, retrieval
+    from heisd_jax.tokenizer import ActionTokenizer
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    state = hybrid.init_state(B, spec, AUTO)
+    state = dataclasses.replace(state, boundary=kinematics.boundary_init((B,), kinematics.RETRIEVAL))
+    keys = retrieval.make_keys(spec, tok, state.prev_actions, obs.proprio)
+    store = retrieval.Datastore(keys=keys, sq_norms=(keys * keys).sum(-1), tokens=jnp.asarray(ar_tokens),
+                                task=jnp.arange(B))
+    p = dict(params, store=store, costs=_costs([1.0, 2.0, 0.5, 2.0, 2.0], [0.1] * 5))
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+    for _ in range(2):
+        _, tokens, state, stats = run(p, CFG, AUTO, spec, tok, state, obs, kin, jnp.arange(B))
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+    # Every row in the retrieval mode, candidates exact: the retrieval option ran twice, 0 rounds.
+    np.testing.assert_array_equal(np.asarray(state.budget.runs), [0, 0, 2, 0, 0])
+    assert float(state.budget.rounds[2]) == 0.0
+    with pytest.raises(ValueError, match='needs params\\["costs"\\]'):
+        hybrid.step(params | {"store": store}, CFG, AUTO, spec, tok, hybrid.init_state(B, spec, AUTO), obs, kin,
+                    jnp.arange(B))
+
+
+def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
+    params, _, _ = setup
+    logs = []
+    table = cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    assert table.options == [o.name for o in OPTS] and len(table.fixed_ms) == len(OPTS)
+    assert all(np.isfinite(v) and v >= 0 for v in table.fixed_ms + table.round_ms + table.decode_ms)
+    assert table.round_ms[0] == 0 and table.fixed_ms[0] == table.decode_ms[0] > 0  # AR: no rounds
+    assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0", "6", "18"}
+    assert table.key["batch"] == 2 and table.ceiling > 0 and "ceiling AR / prefill" in table.report()
+    files = list(tmp_path.glob("costs_*.json"))
+    assert len(files) == 1
+
+    def fail(*a, **k):
+        raise AssertionError("calibrated although a valid table was cached")
+    monkeypatch.setattr(cost_model, "calibrate", fail)
+    again = cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    assert again == table
+
+    # A file measured elsewhere (here: another device) under this key's name is redone, never trusted.
+    measured = []
+
+    def fake(params, cfg, hcfg, batch, reps=5):
+        measured.append(batch)
+        return dataclasses.replace(table, key=cost_model.table_key(params, cfg, hcfg, batch), seconds=0.0)
+    monkeypatch.setattr(cost_model, "calibrate", fake)
+    raw = json.loads(files[0].read_text())
+    raw["key"]["device"] = "another GPU"
+    files[0].write_text(json.dumps(raw))
+    cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    assert measured == [2] and "another setting" in logs[-2] and "device" in logs[-2]
+    files[0].write_text("{not json")  # a damaged file
+    cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    assert measured == [2, 2] and "unreadable" in logs[-2]
+    assert json.loads(files[0].read_text())["key"]["device"] == jax.devices()[0].device_kind
+    cost_model.load_or_calibrate(params, CFG, AUTO, 8, tmp_path, logs.append)  # another batch size: its own table
+    assert measured == [2, 2, 8] and len(list(tmp_path.glob("costs_*.json"))) == 2
+
+
+def test_bad_budget_settings_are_refused():
+    with pytest.raises(ValueError, match="valid: auto, fixed"):
+        budget.BudgetConfig(mode="sometimes")
+    with pytest.raises(ValueError, match="TOPKxDEPTHxTOTAL"):
+        budget.parse_trees("4x2")
+    with pytest.raises(ValueError, match="1 <= total <= top_k\\*depth"):
+        budget.BudgetConfig(mode="auto", trees=((2, 2, 9),))
+    big = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=((8, 4, 32), (40, 4, 32))))
+    with pytest.raises(ValueError, match="cache slots"):
+        big.check_fits(CFG)
+    with pytest.raises(ValueError, match="only used with budget=auto"):
+        methods.check_settings("heisd", {"budget": "fixed", "budget_trees": "4x2x8"})
+    with pytest.raises(ValueError, match="valid: float32, bfloat16"):
+        methods.check_settings("ar", {"dtype": "float16"})
+    s = methods.check_settings("heisd", {"top_k": 4, "depth": 2, "total_tokens": 8})
+    assert methods.hybrid_config("heisd", s).budget.trees == ((4, 2, 8),)  # the given tree bounds the budget
+    assert methods.hybrid_config("heisd", {}).budget == budget.BudgetConfig(mode="auto")
+    assert methods.hybrid_config("retrieval", {}).budget.mode == "fixed"
+
+
+def test_bfloat16_strict_equals_bfloat16_ar(setup):
+    params, obs, _ = setup
+    cfg16, tp16, dp16 = methods.in_dtype(CFG, "bfloat16", params["target"], params["drafter"])
+    assert tp16["embed"]["embedding"].dtype == jnp.bfloat16
+    ar16 = np.asarray(jax.jit(lambda t, o: vla.ar_decode(t, cfg16, o)[0])(tp16, obs))
+    spec = sd.SpecConfig(top_k=2, depth=2, total_tokens=4)
+    tokens, _ = jax.jit(lambda t, d, o: sd.spec_decode(t, d, cfg16, spec, o))(tp16, dp16, obs)
+    np.testing.assert_array_equal(np.asarray(tokens), ar16)
