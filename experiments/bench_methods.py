@@ -8,9 +8,12 @@ dominate. To time the decoder alone on realistic inputs, this first records --st
 steps of --record_method (default ar) in --record_envs envs on the fixed evaluation initial
 states (images, proprio, end-effector kinematics as the rollout saw them), then, per method
 and batch size B, replays them: a jitted `lax.scan` over the recorded steps calls the
-method's policy step (its own state carried: action history, boundary, skips) on B of the
-recorded envs. Timed after a warm-up call (compilation excluded), median of --reps;
-speedup = AR time / method time in this run. Per method it also reports target passes per
+method's policy step (its own state carried: action history, boundary, skips, the draft
+budget's estimates) on B of the recorded envs. Timed after a warm-up call (compilation
+excluded), median of --reps; speedup = AR time / method time in this run, with its spread
+(min..max of the per-repetition ratios, AR's i-th repetition against the method's i-th).
+The target's prefill alone is timed the same way: AR / prefill is the ceiling of any method
+that prefills every action (issue 9), reported per batch size. Per method it also reports target passes per
 action (TPA), tokens per target pass (AL), the mode shares, and how often the method's
 action equals the recorded AR action (lossless methods: 1.0) with the mean bin distance.
 The replay is open loop: the observations are the recording method's, so a method's own
@@ -34,8 +37,8 @@ from flax import struct
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax.timing import median_seconds
-from heisd_jax import checkpoint, methods, retrieval, vla_policy
+from heisd_jax.timing import median_seconds, wall_seconds
+from heisd_jax import checkpoint, cost_model, methods, retrieval, vla, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
@@ -50,7 +53,10 @@ flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE), "budget=auto: cost table directory ('' = none).")
+flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_string("out", "", "JSON output path.")
+flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
 
 
 @struct.dataclass
@@ -103,6 +109,44 @@ def record(env: TabletopEnv, n_envs: int, n_steps: int):
     return states, traj["action"], traj["done"]
 
 
+def prefill_policy(env: TabletopEnv):
+    """The target's prefill alone (its greedy first token repeated): the floor of any method
+    that prefills every action."""
+    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+
+    def decode(params, cfg, obs):
+        logits, _, _ = vla.prefill(params, cfg, obs)
+        first = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id
+        b = first.shape[0]
+        return jnp.repeat(first[:, None], 7, 1), {"target_passes": jnp.ones((b,), jnp.float32)}
+    return vla_policy.decoding_policy("prefill", params, cfg, tok, decode)
+
+
+def plot(rows, path):
+    import matplotlib  # noqa: PLC0415
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    labels = sorted({r["label"] for r in rows}, key=[r["label"] for r in rows].index)
+    for label in labels:
+        rs = sorted((r for r in rows if r["label"] == label), key=lambda r: r["batch"])
+        b = [r["batch"] for r in rs]
+        y = [r["speedup_vs_ar"] for r in rs]
+        err = [[r["speedup_vs_ar"] - r["speedup_spread"][0] for r in rs],
+               [r["speedup_spread"][1] - r["speedup_vs_ar"] for r in rs]]
+        style = dict(ls="--", color="k") if label == "prefill" else {}
+        ax.errorbar(b, y, yerr=err, marker="o", capsize=3, label="ceiling (AR / prefill)" if label == "prefill" else label,
+                    **style)
+    ax.axhline(1.0, color="grey", lw=0.8)
+    ax.set_xscale("log", base=2)
+    ax.set_xlabel("batch size (envs)")
+    ax.set_ylabel("speedup over AR (same run)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    print(f"plot: {path}")
+
+
 def replay_fn(policy):
     def run(params, states):
         first = jax.tree.map(lambda x: x[0], states)
@@ -148,14 +192,21 @@ def main(argv):
     for b in sizes:
         groups = [np.arange(i, i + 1) for i in range(FLAGS.batch1_envs)] if b == 1 else [np.arange(b)]
         base = None
-        for name, settings in method_list:
-            policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                         datastore=FLAGS.datastore, **settings)
+        todo = list(method_list) + ([("prefill", {})] if FLAGS.ceiling else [])
+        for name, settings in todo:
+            if name == "prefill":
+                policy = prefill_policy(env)
+            else:
+                policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                             datastore=FLAGS.datastore, batch_size=b,
+                                             cost_cache=FLAGS.cost_cache or None, **settings)
+            if policy.meta.get("cost_table") is not None:
+                print(policy.meta["cost_table"].report(), flush=True)
             fn = replay_fn(policy)
-            secs, stats_all, same, dist = 0.0, {}, [], []
+            reps, stats_all, same, dist = np.zeros(FLAGS.reps), {}, [], []
             for g in groups:
                 sub = jax.tree.map(lambda x: x[:, g], states)
-                secs += median_seconds(lambda: fn(policy.params, sub), FLAGS.reps)
+                reps += np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps))
                 actions, stats = jax.device_get(fn(policy.params, sub))
                 m = running[:, g]
                 for k, v in stats.items():
@@ -164,29 +215,46 @@ def main(argv):
                 same.append(np.all(bins[0] == bins[1], -1)[m])
                 dist.append(np.abs(bins[0] - bins[1]).mean(-1)[m])
             n_act = float(sum(running[:, g].sum() for g in groups))
-            ms = 1e3 * secs / (FLAGS.steps * len(groups))  # per batched action
-            base = ms if name == "ar" else base
-            row = {"method": name, "settings": settings, "batch": b, "ms_per_action": ms,
-                   "speedup_vs_ar": base / ms,
+            rep_ms = 1e3 * reps / (FLAGS.steps * len(groups))  # per batched action, per repetition
+            ms = float(np.median(rep_ms))
+            if name == "ar" and not settings:
+                base, base_reps = ms, rep_ms
+            ratios = base_reps / rep_ms
+            label = name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
+            row = {"method": name, "settings": settings, "label": label, "batch": b, "ms_per_action": ms,
+                   "ms_reps": rep_ms.tolist(), "speedup_vs_ar": base / ms,
+                   "speedup_spread": [float(ratios.min()), float(ratios.max())],
                    **{f"{k}_per_action": v / n_act for k, v in stats_all.items()},
                    "identical_to_ar": float(np.concatenate(same).mean()),
                    "mean_bin_distance_to_ar": float(np.concatenate(dist).mean())}
             if "target_passes" in stats_all:
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
+            if policy.meta.get("cost_table") is not None:
+                row["cost_table"] = dataclasses.asdict(policy.meta["cost_table"])
             rows.append(row)
-            label = name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
             shares = ""
             if "skipped" in stats_all:
                 shares = (f" retr-verified {row['retrieval_verified_per_action']:.2f} skipped "
                           f"{row['skipped_per_action']:.2f} drafter {row['drafter_mode_per_action']:.2f}")
-            print(f"B={b:<4} {label:<60} {ms:8.2f} ms/action {row['speedup_vs_ar']:5.2f}x  TPA "
-                  f"{row.get('target_passes_per_action', 7):.2f}  AL {row.get('tokens_per_target_pass', 1):.2f}  "
-                  f"=AR {row['identical_to_ar']:.2f}  bins {row['mean_bin_distance_to_ar']:.2f}{shares}", flush=True)
-    if FLAGS.out:
-        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
-                                               "record_method": FLAGS.record_method, "suites": FLAGS.suites,
-                                               "query_ms": query_ms, "rows": rows}, indent=1))
+            budget_shares = {k[len("budget_"):-len("_per_action")]: v for k, v in row.items()
+                             if k.startswith("budget_") and k.endswith("_per_action") and v > 0}
+            if budget_shares:
+                shares += " budget " + " ".join(f"{k} {v:.2f}" for k, v in budget_shares.items())
+            print(f"B={b:<4} {label:<60} {ms:8.2f} ms/action {row['speedup_vs_ar']:5.2f}x "
+                  f"[{ratios.min():.2f}..{ratios.max():.2f}]  TPA {row.get('target_passes_per_action', 7):.2f}  "
+                  f"AL {row.get('tokens_per_target_pass', 1):.2f}  =AR {row['identical_to_ar']:.2f}  "
+                  f"bins {row['mean_bin_distance_to_ar']:.2f}{shares}", flush=True)
+        if FLAGS.out:  # after every batch size: a run cut short keeps what it measured
+            write(rows, query_ms)
+    if FLAGS.plot:
+        plot(rows, FLAGS.plot)
+
+
+def write(rows, query_ms):
+    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
+                                           "record_method": FLAGS.record_method, "suites": FLAGS.suites,
+                                           "query_ms": query_ms, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -101,7 +101,7 @@ def main(argv):
     env = TabletopEnv(task_list)
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                     datastore=FLAGS.datastore, **settings)
+                                     datastore=FLAGS.datastore, batch_size=FLAGS.batch, **settings)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     meta = policy.meta

@@ -70,7 +70,7 @@ def run_cell(cell: dict, task_list, progress) -> dict:
     name, settings = cell["method"], dict(cell["settings"])
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(name, True)))
     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                 datastore=FLAGS.datastore, **settings)
+                                 datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(), **settings)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     def on_batch(results, t):

@@ -54,7 +54,7 @@ def main(argv):
         raise app.UsageError(f"--episode must be in 0..{tasks_lib.N_EVAL_INIT_STATES - 1}")
     env = TabletopEnv(task)
     policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                 datastore=FLAGS.datastore, **settings)
+                                 datastore=FLAGS.datastore, batch_size=1, **settings)
     n = FLAGS.steps or task[0].max_steps
     keys = env.initial_state_keys(np.array([0]), np.array([FLAGS.episode]))
     final, traj = jax.device_get(jax.jit(lambda p, k: rollout.record_episodes(

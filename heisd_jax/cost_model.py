@@ -17,6 +17,7 @@ it measures again and replaces the file atomically.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import os
@@ -38,7 +39,16 @@ DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "hei
 
 
 def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 5) -> float:
-    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc)."""
+    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc).
+    Calls with the same `fn` object share one compiled loop."""
+    f = _looped(fn)
+    t1 = median_seconds(lambda: f(n[0], args), reps)
+    t2 = median_seconds(lambda: f(n[1], args), reps)
+    return 1e3 * max(t2 - t1, 0.0) / (n[1] - n[0])
+
+
+@functools.lru_cache(maxsize=64)
+def _looped(fn: Callable):
     def loop(count, args):
         def body(_, carry):
             args, acc = carry
@@ -47,11 +57,7 @@ def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: i
             leaf = jax.tree.leaves(out)[0]
             return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32)
         return jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32)))[1]
-
-    f = jax.jit(loop)
-    t1 = median_seconds(lambda: f(n[0], args), reps)
-    t2 = median_seconds(lambda: f(n[1], args), reps)
-    return 1e3 * max(t2 - t1, 0.0) / (n[1] - n[0])
+    return jax.jit(loop)
 
 
 def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: int = 0):
@@ -149,26 +155,29 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
 
     opts = budget.options(hcfg.budget, hcfg.mode)
     fixed, rnd, whole, nrounds = [], [], [], []
-    state0 = {}
+    per_tree = {}  # tree -> (its decode, one round's cost); both retrieval flags share them
+    skip = jnp.zeros((batch,), bool)
     for o in opts:
         if o.tree is None:
             whole.append(ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs))
             fixed.append(whole[-1]), rnd.append(0.0), nrounds.append(0.0)
             continue
-        spec = budget.tree_spec(hcfg.spec, o.tree)
-        hc = dataclasses.replace(hcfg, spec=spec)
+        if o.tree not in per_tree:
+            spec = budget.tree_spec(hcfg.spec, o.tree)
+            hc = dataclasses.replace(hcfg, spec=spec)
+
+            def dec(p, obs, cand, valid, use, skip, hc=hc):
+                return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
+            s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
+                tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
+            per_tree[o.tree] = dec, ms(lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out,
+                                       tp, dp, s0)
+        dec, round_ms = per_tree[o.tree]
         use = jnp.full((batch,), o.retrieval)
-        skip = jnp.zeros((batch,), bool)
-        dec = lambda p, obs, cand, valid, use, skip: hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)  # noqa: E731,B023
         whole.append(ms(dec, params, obs, cand, valid, use, skip))
         nrounds.append(float(np.max(jax.jit(dec)(params, obs, cand, valid, use, skip)[1]["rounds"])))
-        if o.tree not in state0:  # one round of this tree, from the state after the prefill
-            s0 = jax.jit(lambda tp, dp, obs: spec_decode.start(
-                tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)  # noqa: B023
-            state0[o.tree] = ms(lambda tp, dp, s: spec_decode.round_step(tp, dp, cfg, spec, s).out,  # noqa: B023
-                                tp, dp, s0)
-        rnd.append(state0[o.tree])
-        fixed.append(max(whole[-1] - nrounds[-1] * rnd[-1], pieces["prefill_ms"]["0"]))
+        rnd.append(round_ms)
+        fixed.append(max(whole[-1] - nrounds[-1] * round_ms, pieces["prefill_ms"]["0"]))
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)

@@ -8,8 +8,8 @@ import jax
 import numpy as np
 
 
-def median_seconds(fn, reps: int) -> float:
-    """Median wall-clock of `reps` calls of fn() (results blocked on), after one untimed
+def wall_seconds(fn, reps: int) -> list[float]:
+    """Wall-clock of each of `reps` calls of fn() (results blocked on), after one untimed
     call (compilation and warm-up excluded)."""
     jax.block_until_ready(fn())
     times = []
@@ -17,4 +17,9 @@ def median_seconds(fn, reps: int) -> float:
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+    return times
+
+
+def median_seconds(fn, reps: int) -> float:
+    """Median of `wall_seconds`."""
+    return float(np.median(wall_seconds(fn, reps)))

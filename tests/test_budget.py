@@ -116,8 +116,9 @@ def test_step_with_auto_budget_keeps_its_state(setup):
 def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
     params, _, _ = setup
     logs = []
-    table = cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
-    assert table.options == [o.name for o in OPTS] and len(table.fixed_ms) == len(OPTS)
+    one = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=TREES[:1]))
+    table = cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
+    assert table.options == ["ar", "2x1x2", "2x1x2+retrieval"] and len(table.fixed_ms) == 3
     assert all(np.isfinite(v) and v >= 0 for v in table.fixed_ms + table.round_ms + table.decode_ms)
     assert table.round_ms[0] == 0 and table.fixed_ms[0] == table.decode_ms[0] > 0  # AR: no rounds
     assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0", "6", "18"}
@@ -128,7 +129,7 @@ def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
     def fail(*a, **k):
         raise AssertionError("calibrated although a valid table was cached")
     monkeypatch.setattr(cost_model, "calibrate", fail)
-    again = cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    again = cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
     assert again == table
 
     # A file measured elsewhere (here: another device) under this key's name is redone, never trusted.
@@ -141,13 +142,13 @@ def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
     raw = json.loads(files[0].read_text())
     raw["key"]["device"] = "another GPU"
     files[0].write_text(json.dumps(raw))
-    cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
     assert measured == [2] and "another setting" in logs[-2] and "device" in logs[-2]
     files[0].write_text("{not json")  # a damaged file
-    cost_model.load_or_calibrate(params, CFG, AUTO, 2, tmp_path, logs.append)
+    cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
     assert measured == [2, 2] and "unreadable" in logs[-2]
     assert json.loads(files[0].read_text())["key"]["device"] == jax.devices()[0].device_kind
-    cost_model.load_or_calibrate(params, CFG, AUTO, 8, tmp_path, logs.append)  # another batch size: its own table
+    cost_model.load_or_calibrate(params, CFG, one, 8, tmp_path, logs.append)  # another batch size: its own table
     assert measured == [2, 2, 8] and len(list(tmp_path.glob("costs_*.json"))) == 2
 
 

@@ -148,8 +148,11 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     from envs.env import TabletopEnv
     from heisd_jax import methods
 
-    policy = methods.make_policy("heisd", TabletopEnv(tasks.get_tasks("goal")), top_k=4, depth=2, total_tokens=8)
+    env = TabletopEnv(tasks.get_tasks("goal"))
+    policy = methods.make_policy("heisd", env, budget="fixed", top_k=4, depth=2, total_tokens=8)
     assert policy.name == "heisd" and policy.params["store"].size > 100_000
+    with pytest.raises(ValueError, match="pass batch_size"):  # budget=auto (the default) measures costs at it
+        methods.make_policy("heisd", env)
     assert methods.check_settings("heisd", {"skip": "false", "k_skip": "2"}) == {"skip": False, "k_skip": 2}
     with pytest.raises(ValueError, match="unknown settings \\['tau'\\]; valid: top_k"):
         methods.check_settings("heisd", {"tau": 1})
@@ -159,5 +162,5 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
         methods.check_settings("heisd", {"acceptance": "strict", "skip": True})
     assert methods.hybrid_config("heisd", {"acceptance": "strict"}).lossless
     assert not methods.hybrid_config("heisd", {}).lossless
-    with pytest.raises(ValueError, match="takes no settings"):
+    with pytest.raises(ValueError, match="unknown settings \\['top_k'\\]; valid: dtype"):
         methods.check_settings("ar", {"top_k": 4})
