@@ -8,6 +8,10 @@ so the ~0.1-1.5 ms of dispatch per jitted call (which a real decode pays once pe
 not per pass) is not counted per pass. The loop carries its inputs through an optimization
 barrier, so XLA can neither hoist the work out of the loop nor drop it.
 
+Calibrate on an otherwise idle device: a table measured while other programs share the GPU
+is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and
+it stays cached; delete the file (or pass another cache directory) to measure again.
+
 A table is tied to its key (device, platform, jax version, model fingerprints, dtype, batch
 size, options, number of candidates). `load_or_calibrate` reads the cached file only if its
 key equals the current one; otherwise (another device, model or batch size, a damaged file)
@@ -30,7 +34,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import budget, checkpoint, drafter, hybrid, spec_decode, vla
+from heisd_jax import budget, checkpoint, drafter, hybrid, retrieval, spec_decode, vla
 from heisd_jax.timing import median_seconds
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
@@ -107,7 +111,7 @@ class CostTable:
                  "  prefill + appended tokens: " + ", ".join(f"+{k}: {v:.3f}" for k, v in p["prefill_ms"].items()) + " ms",
                  "  cached target pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["cached_ms"].items()) + " ms",
                  "  drafter pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["drafter_ms"].items())
-                 + f" ms; drafter prompt pass {p['drafter_prompt_ms']:.3f} ms",
+                 + f" ms; drafter prompt pass {p['drafter_prompt_ms']:.3f} ms; datastore query {p['query_ms']:.3f} ms",
                  f"  ceiling AR / prefill: {self.ceiling:.2f}x"]
         for i, name in enumerate(self.options):
             lines.append(f"  {name:<22} fixed {self.fixed_ms[i]:7.3f} ms + rounds x {self.round_ms[i]:6.3f} ms "
@@ -153,6 +157,11 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
         pieces["drafter_ms"][str(t)] = ms(
             lambda dp, c, e, p, m: drafter.step(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
 
+    query_ms = 0.0  # every option but plain AR queries the datastore first
+    if "store" in params:
+        keys = jnp.zeros((batch, params["store"].keys.shape[1]), jnp.float32)
+        query_ms = ms(lambda st, k: retrieval.query(st, k, jnp.zeros((batch,), jnp.int32), n)[1], params["store"], keys)
+    pieces["query_ms"] = query_ms
     opts = budget.options(hcfg.budget, hcfg.mode)
     fixed, rnd, whole, nrounds = [], [], [], []
     per_tree = {}  # tree -> (its decode, one round's cost); both retrieval flags share them
@@ -177,7 +186,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
         whole.append(ms(dec, params, obs, cand, valid, use, skip))
         nrounds.append(float(np.max(jax.jit(dec)(params, obs, cand, valid, use, skip)[1]["rounds"])))
         rnd.append(round_ms)
-        fixed.append(max(whole[-1] - nrounds[-1] * round_ms, pieces["prefill_ms"]["0"]))
+        fixed.append(max(whole[-1] - nrounds[-1] * round_ms, pieces["prefill_ms"]["0"]) + query_ms)
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)

@@ -221,28 +221,26 @@ def decode_ar(params, cfg: vla.VLAConfig, obs: vla.Observation, cand: jnp.ndarra
                     "retrieval_whole": z, "skipped": skip.astype(jnp.float32)}
 
 
-def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_lib.BudgetState,
+def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_lib.BudgetState, option: jnp.ndarray,
                 obs: vla.Observation, cand: jnp.ndarray, cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray,
                 skip: jnp.ndarray):
-    """`decode` under the budget chosen for this step (`heisd_jax.budget`; params["costs"]:
-    a `budget.Costs`). Returns tokens, stats (with a one-hot `budget_<option>` per row) and
-    the updated budget state."""
+    """`decode` under budget option `option` (an index into `budget.options`, from
+    `budget.choose`). Returns tokens, stats (with a one-hot `budget_<option>` per row) and
+    the budget state updated with the rounds this batch needed."""
     opts = budget_lib.options(hcfg.budget, hcfg.mode)
     trees = hcfg.budget.trees
-    any_retrieval = jnp.any(use_retrieval & ~skip)
-    o = budget_lib.choose(params["costs"], bstate, opts, any_retrieval)
-    wants_retrieval = jnp.asarray([opt.retrieval for opt in opts])[o]
+    wants_retrieval = jnp.asarray([opt.retrieval for opt in opts])[option]
 
     def tree_branch(tree):
         hc = dataclasses.replace(hcfg, spec=budget_lib.tree_spec(hcfg.spec, tree))
         return lambda _: decode(params, cfg, hc, obs, cand, cand_valid, use_retrieval & wants_retrieval, skip)
 
     branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)] + [tree_branch(t) for t in trees]
-    tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[o], branches, None)
-    bstate = budget_lib.update(hcfg.budget, bstate, opts, o, jnp.max(stats["rounds"]))
+    tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[option], branches, None)
+    bstate = budget_lib.update(hcfg.budget, bstate, opts, option, jnp.max(stats["rounds"]))
     b = cand.shape[0]
     for i, opt in enumerate(opts):
-        stats[f"budget_{opt.name}"] = jnp.full((b,), o == i, jnp.float32)
+        stats[f"budget_{opt.name}"] = jnp.full((b,), option == i, jnp.float32)
     return tokens, stats, bstate
 
 
@@ -291,17 +289,29 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     else:
         use_retrieval = jnp.full((b,), hcfg.mode == "retrieval")
     keys = retrieval.make_keys(key_spec, tok, state.prev_actions, obs.proprio)
-    cand, dist, valid = retrieval.query(params["store"], keys, task, hcfg.n_candidates, hcfg.max_dist)
-    # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
-    in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
-    skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
-                               state.skips)
     bstate = state.budget
-    if hcfg.budget.mode == "auto":
+    auto = hcfg.budget.mode == "auto"
+    if auto:
         if bstate is None or "costs" not in params:
             raise ValueError('budget "auto" needs params["costs"] (cost_model.load_or_calibrate(...).costs()) and a '
                              "state from init_state(batch, key_spec, hcfg)")
-        tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, obs, cand, valid, use_retrieval, skip)
+        opts = budget_lib.options(hcfg.budget, hcfg.mode)
+        option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval))
+        # Plain AR means no retrieval work at all: no query (and so no verify-skip) this step.
+        plain_ar = jnp.asarray(budget_lib.branch_index(opts, hcfg.budget.trees))[option] == 0
+        n = hcfg.n_candidates
+        no_query = lambda _: (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32),  # noqa: E731
+                              jnp.full((b, n), jnp.inf, jnp.float32), jnp.zeros((b, n), bool))
+        cand, dist, valid = jax.lax.cond(
+            plain_ar, no_query, lambda _: retrieval.query(params["store"], keys, task, n, hcfg.max_dist), None)
+    else:
+        cand, dist, valid = retrieval.query(params["store"], keys, task, hcfg.n_candidates, hcfg.max_dist)
+    # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
+    in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
+    skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
+                          state.skips)
+    if auto:
+        tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, option, obs, cand, valid, use_retrieval, skip)
     else:
         tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
     actions = tok.decode(tokens)

@@ -74,9 +74,8 @@ def test_strict_equals_ar_under_every_budget_option(setup, verify):
     valid = jnp.ones((B, 3), bool)
     skip = jnp.zeros((B,), bool)
     for i, opt in enumerate(OPTS):
-        forced = _costs([0.0 if j == i else 1.0 for j in range(len(OPTS))], [0.0] * len(OPTS))
-        p = dict(params, costs=forced)
-        tokens, stats, bstate = _auto(p, CFG, hcfg, budget.init_state(OPTS), obs, cand, valid, use, skip)
+        tokens, stats, bstate = _auto(params, CFG, hcfg, budget.init_state(OPTS), jnp.asarray(i), obs, cand, valid,
+                                      use, skip)
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens, err_msg=opt.name)
         assert np.all(np.asarray(stats[f"budget_{opt.name}"]) == 1.0)
         assert float(bstate.runs[i]) == 1 and float(jnp.sum(bstate.runs)) == 1
