@@ -15,7 +15,7 @@ def _run(argv):
 
 
 def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
-    out = _run(["--method=heisd", "--settings=top_k=4,depth=2,total_tokens=8", "--suites=goal", "--batch=2",
+    out = _run(["--method=heisd", "--settings=budget=fixed,top_k=4,depth=2,total_tokens=8", "--suites=goal", "--batch=2",
                 "--steps=4", f"--trace_dir={tmp_path / 'trace'}", f"--out={tmp_path / 'p.json'}"])
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads((tmp_path / "p.json").read_text())
