@@ -189,13 +189,14 @@ def main(argv):
             q = jax.jit(lambda s, k: retrieval.query(s, k, jnp.zeros((b,), jnp.int32), 4))
             query_ms[b] = 1e3 * median_seconds(lambda: q(store, keys), max(FLAGS.reps, 10))
             print(f"B={b:<4} retrieval query ({store.size} entries): {query_ms[b]:.3f} ms", flush=True)
+    prefill = prefill_policy(env) if FLAGS.ceiling else None
     for b in sizes:
         groups = [np.arange(i, i + 1) for i in range(FLAGS.batch1_envs)] if b == 1 else [np.arange(b)]
         base = None
         todo = list(method_list) + ([("prefill", {})] if FLAGS.ceiling else [])
         for name, settings in todo:
             if name == "prefill":
-                policy = prefill_policy(env)
+                policy = prefill
             else:
                 policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                              datastore=FLAGS.datastore, batch_size=b,

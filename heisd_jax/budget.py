@@ -93,8 +93,8 @@ class Option:
 
 
 def options(cfg: BudgetConfig, mode: str) -> tuple[Option, ...]:
-    """AR, then per tree: drafter only (unless mode is 'retrieval'), with retrieval (unless
-    mode is 'drafter'). `mode`: the HybridConfig's (hybrid, retrieval, drafter)."""
+    """AR (always option 0), then per tree: drafter only (unless mode is 'retrieval'), with
+    retrieval (unless mode is 'drafter'). `mode`: the HybridConfig's (hybrid, retrieval, drafter)."""
     out = [Option(None)]
     for tree in cfg.trees:
         if mode != "retrieval":

@@ -136,9 +136,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     _, hidden, x, cache = jax.jit(lambda tp, obs: vla.prefill_features(tp, cfg, obs))(tp, obs)
     largest = max(t[2] for t in hcfg.budget.trees) + 1
     pieces["cached_ms"] = {}
-    for t in sorted({1, 2, 4, 8, 16, 32, largest}):
-        if t > largest:
-            continue
+    for t in sorted({t for t in (1, 2, 4, 8, 16, 32) if t < largest} | {largest}):
         toks = jnp.full((batch, t), cfg.first_action_id, jnp.int32)
         depth = jnp.broadcast_to(jnp.arange(t), (batch, t))
         intra = jnp.broadcast_to(jnp.tril(jnp.ones((t, t), bool)), (batch, t, t))

@@ -297,8 +297,8 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
                              "state from init_state(batch, key_spec, hcfg)")
         opts = budget_lib.options(hcfg.budget, hcfg.mode)
         option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval))
-        # Plain AR means no retrieval work at all: no query (and so no verify-skip) this step.
-        plain_ar = jnp.asarray(budget_lib.branch_index(opts, hcfg.budget.trees))[option] == 0
+        # Plain AR (option 0) means no retrieval work at all: no query (and so no verify-skip).
+        plain_ar = option == 0
         n = hcfg.n_candidates
         no_query = lambda _: (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32),  # noqa: E731
                               jnp.full((b, n), jnp.inf, jnp.float32), jnp.zeros((b, n), bool))

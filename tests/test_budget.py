@@ -12,21 +12,14 @@ import pytest
 
 from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, vla
 
-from test_hybrid import B, _candidates
-from test_spec_decode import CFG, _aligned_pair, _ar, _obs
+from test_hybrid import B, _candidates, setup  # noqa: F401  (setup: the shared module fixture)
+from test_spec_decode import CFG
 
 TREES = ((2, 1, 2), (2, 2, 4))
 AUTO = hybrid.HybridConfig(spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4), mode="hybrid", acceptance="strict",
                            n_candidates=3, skip=acceptance.SkipConfig(enabled=False),
                            budget=budget.BudgetConfig(mode="auto", trees=TREES))
 OPTS = budget.options(AUTO.budget, AUTO.mode)
-
-
-@pytest.fixture(scope="module")
-def setup():
-    tp, dp = _aligned_pair(0.35)
-    obs = _obs(7, batch=B)
-    return {"target": tp, "drafter": dp}, obs, np.asarray(_ar(tp, obs))
 
 
 def _costs(fixed, rounds):
