@@ -6,7 +6,13 @@ Every latency is an *in-graph* cost: the piece runs inside one jitted loop n1 an
 (one compile, the trip count is an argument) and the cost is the difference over n2 - n1,
 so the ~0.1-1.5 ms of dispatch per jitted call (which a real decode pays once per action,
 not per pass) is not counted per pass. The loop carries its inputs through an optimization
-barrier, so XLA can neither hoist the work out of the loop nor drop it.
+barrier, so XLA can neither hoist the work out of the loop nor drop it. The two runs are
+timed back to back, `reps` times, and the median of the differences is kept: at batch 1
+a piece costs 0.03-0.4 ms and one pair of runs is that noisy.
+
+An option's fixed part (whole decode minus its draft rounds) is the median over several
+random input draws, which take different numbers of rounds (FORMAT 2; format-1 tables took
+one draw and, at batch 1, ranked a 32-token tree's fixed part below a 8-token tree's).
 
 Calibrate on an otherwise idle device: a table measured while other programs share the GPU
 is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and
@@ -35,20 +41,25 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import budget, checkpoint, drafter, hybrid, retrieval, spec_decode, vla
-from heisd_jax.timing import median_seconds
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
-FORMAT = 1
+FORMAT = 2
 DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
 
 
-def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 5) -> float:
-    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc).
+def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 7) -> float:
+    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc):
+    the median over `reps` back-to-back pairs of (n[1] runs - n[0] runs) / (n[1] - n[0]).
     Calls with the same `fn` object share one compiled loop."""
     f = _looped(fn)
-    t1 = median_seconds(lambda: f(n[0], args), reps)
-    t2 = median_seconds(lambda: f(n[1], args), reps)
-    return 1e3 * max(t2 - t1, 0.0) / (n[1] - n[0])
+
+    def seconds(count):
+        t0 = time.perf_counter()
+        jax.block_until_ready(f(count, args))
+        return time.perf_counter() - t0
+    seconds(n[1])  # compile + warm-up
+    diffs = [seconds(n[1]) - seconds(n[0]) for _ in range(reps)]
+    return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0])
 
 
 @functools.lru_cache(maxsize=64)
@@ -90,8 +101,8 @@ class CostTable:
     options: list[str]
     fixed_ms: list[float]  # per option (see budget)
     round_ms: list[float]
-    decode_ms: list[float]  # the option's whole decode on the calibration inputs
-    decode_rounds: list[float]  # ... and the draft rounds it needed there
+    decode_ms: list[float]  # the option's whole decode on the calibration inputs (median over draws)
+    decode_rounds: list[float]  # ... and the draft rounds it needed there (median)
     pieces: dict  # prefill_ms {appended tokens: ms}, cached_ms {T: ms}, drafter_ms {T: ms}, drafter_prompt_ms
     seconds: float  # how long the calibration took
 
@@ -119,8 +130,10 @@ class CostTable:
         return "\n".join(lines)
 
 
-def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int, reps: int = 5) -> CostTable:
-    """Measures the cost table (seconds to a minute: one compile per piece)."""
+def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int, reps: int = 7,
+              n_draws: int = 3) -> CostTable:
+    """Measures the cost table (seconds to minutes: one compile per piece); each option's
+    whole decode on `n_draws` random input draws."""
     t_start = time.perf_counter()
     tp, dp = params["target"], params["drafter"]
     n = hcfg.n_candidates
@@ -161,12 +174,14 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
         query_ms = ms(lambda st, k: retrieval.query(st, k, jnp.zeros((batch,), jnp.int32), n)[1], params["store"], keys)
     pieces["query_ms"] = query_ms
     opts = budget.options(hcfg.budget, hcfg.mode)
+    draws = [(obs, cand)] + [synthetic_inputs(cfg, batch, n, seed) for seed in range(1, n_draws)]
+    whole_ms = lambda fn, *args: in_graph_ms(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
     fixed, rnd, whole, nrounds = [], [], [], []
-    per_tree = {}  # tree -> (its decode, one round's cost); both retrieval flags share them
+    per_tree = {}  # tree -> (its decode, its rounds count, one round's cost); both retrieval flags share them
     skip = jnp.zeros((batch,), bool)
     for o in opts:
         if o.tree is None:
-            whole.append(ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs))
+            whole.append(whole_ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs))
             fixed.append(whole[-1]), rnd.append(0.0), nrounds.append(0.0)
             continue
         if o.tree not in per_tree:
@@ -175,16 +190,17 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
 
             def dec(p, obs, cand, valid, use, skip, hc=hc):
                 return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
+            rounds = jax.jit(lambda *a, dec=dec: jnp.max(dec(*a)[1]["rounds"]))
             s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
                 tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
-            per_tree[o.tree] = dec, ms(lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out,
-                                       tp, dp, s0)
-        dec, round_ms = per_tree[o.tree]
+            per_tree[o.tree] = dec, rounds, ms(
+                lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out, tp, dp, s0)
+        dec, rounds, round_ms = per_tree[o.tree]
         use = jnp.full((batch,), o.retrieval)
-        whole.append(ms(dec, params, obs, cand, valid, use, skip))
-        nrounds.append(float(np.max(jax.jit(dec)(params, obs, cand, valid, use, skip)[1]["rounds"])))
-        rnd.append(round_ms)
-        fixed.append(max(whole[-1] - nrounds[-1] * round_ms, pieces["prefill_ms"]["0"]) + query_ms)
+        t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in draws])
+        r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in draws])
+        whole.append(float(np.median(t))), nrounds.append(float(np.median(r))), rnd.append(round_ms)
+        fixed.append(max(float(np.median(t - r * round_ms)), pieces["prefill_ms"]["0"]) + query_ms)
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)
