@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 from pathlib import Path
 
@@ -118,19 +119,28 @@ def main(argv):
     device = f"{jax.devices()[0].device_kind} x{jax.device_count()}"
     print(f"{FLAGS.method} on {len(task_list)} tasks, {device}, jax {jax.__version__}", flush=True)
 
-    rows = [sequential(env, policy, FLAGS.seq_episodes)]
-    print(f"  sequential: {rows[-1]['episodes_per_s']:.3f} episodes/s", flush=True)
-    for b in sizes:
-        rows.append(batched(env, policy, b, FLAGS.episodes))
-        print(f"  batched {b}: {rows[-1]['episodes_per_s']:.3f} episodes/s", flush=True)
-    base = rows[0]
-    for r in rows:
-        r["x_sequential"] = r["episodes_per_s"] / base["episodes_per_s"]
-        r["success_rate"] = float(np.mean([s for s, _ in r["outcomes"]]))
+    settings = {k: FLAGS[k].value for k in ("method", "suites", "tasks", "batch_sizes", "episodes", "seq_episodes")}
+    rows = []
+
+    def add(row: dict) -> None:
+        """Ratios against the sequential loop (rows[0]), then the JSON rewritten: an interrupted
+        run keeps every finished row."""
+        base = rows[0] if rows else row
+        row["x_sequential"] = row["episodes_per_s"] / base["episodes_per_s"]
+        row["success_rate"] = float(np.mean([s for s, _ in row["outcomes"]]))
         # Episodes also played by the sequential loop (same initial state and policy keys).
-        shared = min(len(r["outcomes"]), len(base["outcomes"]))
-        r["same_as_sequential"] = sum(a == b for a, b in zip(r["outcomes"][:shared], base["outcomes"][:shared]))
-        r["same_of"] = shared
+        row["same_of"] = min(len(row["outcomes"]), len(base["outcomes"]))
+        row["same_as_sequential"] = sum(a == b for a, b in zip(row["outcomes"], base["outcomes"][:row["same_of"]]))
+        rows.append(row)
+        label = "sequential" if row["mode"] == "sequential" else f"batched {row['num_envs']}"
+        print(f"  {label}: {row['episodes_per_s']:.3f} episodes/s ({row['x_sequential']:.2f}x sequential)", flush=True)
+        if FLAGS.out:
+            write_json(Path(FLAGS.out), {"settings": settings, "device": device, "jax": jax.__version__,
+                                         "tasks": [t.name for t in task_list], "rows": rows})
+
+    add(sequential(env, policy, FLAGS.seq_episodes))
+    for b in sizes:
+        add(batched(env, policy, b, FLAGS.episodes))
 
     print(f"\n{'mode':<12}{'envs':>6}{'devices':>9}{'episodes':>10}{'episodes/s':>12}{'x sequential':>14}"
           f"{'success':>9}{'compile s':>11}")
@@ -139,11 +149,14 @@ def main(argv):
               f"{r['x_sequential']:>14.2f}{r['success_rate']:>9.3f}{r['compile_s']:>11.0f}")
     same = ", ".join(f"{r['same_as_sequential']}/{r['same_of']}" for r in rows[1:])
     print(f"episodes identical to the sequential loop's (success, steps), per batch size: {same}")
-    if FLAGS.out:
-        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        settings = {k: FLAGS[k].value for k in ("method", "suites", "tasks", "batch_sizes", "episodes", "seq_episodes")}
-        Path(FLAGS.out).write_text(json.dumps({"settings": settings, "device": device, "jax": jax.__version__,
-                                               "tasks": [t.name for t in task_list], "rows": rows}, indent=1))
+
+
+def write_json(path: Path, data: dict) -> None:
+    """Replaces `path` atomically (a crash mid-write leaves the previous file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
 
 
 if __name__ == "__main__":
