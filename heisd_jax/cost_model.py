@@ -10,9 +10,16 @@ barrier, so XLA can neither hoist the work out of the loop nor drop it. The two 
 timed back to back, `reps` times, and the median of the differences is kept: at batch 1
 a piece costs 0.03-0.4 ms and one pair of runs is that noisy.
 
-An option's fixed part (whole decode minus its draft rounds) is the median over several
-random input draws, which take different numbers of rounds (FORMAT 2; format-1 tables took
-one draw and, at batch 1, ranked a 32-token tree's fixed part below a 8-token tree's).
+An option's cost is `fixed + rounds x round` (budget.Costs). A draft round costs more inside
+the decode's `while_loop` (loop predicate, cache commit, masks) than alone, so for a tree
+with a retrieval option both are read off whole decodes: the decode with candidates equal
+to the target's own greedy action (accepted whole: zero rounds) is the fixed part, and the
+slope to the decode on random inputs (which need several rounds) is the round's cost in
+context. The tree's drafter-only option shares that round cost; its fixed part is the
+median over random input draws of (decode - rounds x round). Without a retrieval option,
+the round measured alone is used. (FORMAT 3. Formats 1-2 subtracted rounds measured alone
+and over-predicted the fixed part: at batch 16 on an H100, 2.4-3.1 ms against a 0.92 ms
+prefill, so AR was chosen where a fixed 4x2x8 budget ran at AR's speed.)
 
 Calibrate on an otherwise idle device: a table measured while other programs share the GPU
 is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and
@@ -43,7 +50,7 @@ import numpy as np
 from heisd_jax import budget, checkpoint, drafter, hybrid, retrieval, spec_decode, vla
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
-FORMAT = 2
+FORMAT = 3
 DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
 
 
@@ -123,6 +130,9 @@ class CostTable:
                  "  cached target pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["cached_ms"].items()) + " ms",
                  "  drafter pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["drafter_ms"].items())
                  + f" ms; drafter prompt pass {p['drafter_prompt_ms']:.3f} ms; datastore query {p['query_ms']:.3f} ms",
+                 "  draft round measured alone: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["round_alone_ms"].items())
+                 + " ms; decode with whole acceptance (0 rounds): "
+                 + (", ".join(f"{k}: {v:.3f}" for k, v in p["zero_round_ms"].items()) or "-") + " ms",
                  f"  ceiling AR / prefill: {self.ceiling:.2f}x"]
         for i, name in enumerate(self.options):
             lines.append(f"  {name:<22} fixed {self.fixed_ms[i]:7.3f} ms + rounds x {self.round_ms[i]:6.3f} ms "
@@ -176,31 +186,44 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     opts = budget.options(hcfg.budget, hcfg.mode)
     draws = [(obs, cand)] + [synthetic_inputs(cfg, batch, n, seed) for seed in range(1, n_draws)]
     whole_ms = lambda fn, *args: in_graph_ms(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
-    fixed, rnd, whole, nrounds = [], [], [], []
-    per_tree = {}  # tree -> (its decode, its rounds count, one round's cost); both retrieval flags share them
     skip = jnp.zeros((batch,), bool)
-    for o in opts:
-        if o.tree is None:
-            whole.append(whole_ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs))
-            fixed.append(whole[-1]), rnd.append(0.0), nrounds.append(0.0)
-            continue
-        if o.tree not in per_tree:
-            spec = budget.tree_spec(hcfg.spec, o.tree)
-            hc = dataclasses.replace(hcfg, spec=spec)
+    ar = jax.jit(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0])
+    # Candidates equal to the target's own greedy action: accepted whole, zero draft rounds.
+    exact = jnp.broadcast_to(ar(tp, obs)[:, None], cand.shape)
+    ar_ms = whole_ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs)
+    rows = {"ar": (ar_ms, 0.0, ar_ms, 0.0)}  # option -> (fixed, round, whole decode, its rounds)
+    pieces["round_alone_ms"], pieces["zero_round_ms"] = {}, {}
+    for tree in dict.fromkeys(o.tree for o in opts if o.tree is not None):
+        spec = budget.tree_spec(hcfg.spec, tree)
+        hc = dataclasses.replace(hcfg, spec=spec)
 
-            def dec(p, obs, cand, valid, use, skip, hc=hc):
-                return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
-            rounds = jax.jit(lambda *a, dec=dec: jnp.max(dec(*a)[1]["rounds"]))
-            s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
-                tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
-            per_tree[o.tree] = dec, rounds, ms(
-                lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out, tp, dp, s0)
-        dec, rounds, round_ms = per_tree[o.tree]
-        use = jnp.full((batch,), o.retrieval)
-        t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in draws])
-        r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in draws])
-        whole.append(float(np.median(t))), nrounds.append(float(np.median(r))), rnd.append(round_ms)
-        fixed.append(max(float(np.median(t - r * round_ms)), pieces["prefill_ms"]["0"]) + query_ms)
+        def dec(p, obs, cand, valid, use, skip, hc=hc):
+            return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
+        rounds = jax.jit(lambda *a, dec=dec: jnp.max(dec(*a)[1]["rounds"]))
+        s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
+            tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
+        name = budget.Option(tree, False).name
+        round_ms = pieces["round_alone_ms"][name] = ms(
+            lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out, tp, dp, s0)
+
+        def timed(use, inputs, dec=dec, rounds=rounds):
+            t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs])
+            r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in inputs])
+            return t, r
+        mine = [o for o in opts if o.tree == tree]
+        random = {o.retrieval: timed(jnp.full((batch,), o.retrieval), draws) for o in mine}
+        if True in random:  # the round's cost in context: slope from the zero-round anchor
+            (t0,), (r0,) = timed(jnp.ones((batch,), bool), [(obs, exact)])
+            pieces["zero_round_ms"][name + "+retrieval"] = float(t0)
+            t, r = map(np.median, random[True])
+            if r - r0 >= 1 and t > t0:
+                round_ms = float((t - t0) / (r - r0))
+        for o in mine:
+            t, r = random[o.retrieval]
+            fixed = float(t0 - r0 * round_ms) if o.retrieval else float(np.median(t - r * round_ms))
+            rows[o.name] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms,
+                            float(np.median(t)), float(np.median(r)))
+    fixed, rnd, whole, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)

@@ -113,6 +113,8 @@ def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
     assert table.options == ["ar", "2x1x2", "2x1x2+retrieval"] and len(table.fixed_ms) == 3
     assert all(np.isfinite(v) and v >= 0 for v in table.fixed_ms + table.round_ms + table.decode_ms)
     assert table.round_ms[0] == 0 and table.fixed_ms[0] == table.decode_ms[0] > 0  # AR: no rounds
+    # Both options of a tree share its round cost in context (slope from the zero-round anchor).
+    assert table.round_ms[1] == table.round_ms[2] > 0 and set(table.pieces["zero_round_ms"]) == {"2x1x2+retrieval"}
     assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0", "6", "18"}
     assert table.key["batch"] == 2 and table.ceiling > 0 and "ceiling AR / prefill" in table.report()
     files = list(tmp_path.glob("costs_*.json"))
