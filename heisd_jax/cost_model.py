@@ -203,8 +203,9 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
         s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
             tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
         name = budget.Option(tree, False).name
+        # The whole state out (not just the tokens), or XLA drops the cache commit.
         round_ms = pieces["round_alone_ms"][name] = ms(
-            lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s).out, tp, dp, s0)
+            lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s), tp, dp, s0)
 
         def timed(use, inputs, dec=dec, rounds=rounds):
             t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs])
