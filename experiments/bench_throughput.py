@@ -18,11 +18,8 @@ loop, are printed per batch size.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
-import os
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +29,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) in the loop.")
@@ -135,8 +132,8 @@ def main(argv):
         label = "sequential" if row["mode"] == "sequential" else f"batched {row['num_envs']}"
         print(f"  {label}: {row['episodes_per_s']:.3f} episodes/s ({row['x_sequential']:.2f}x sequential)", flush=True)
         if FLAGS.out:
-            write_json(Path(FLAGS.out), {"settings": settings, "device": device, "jax": jax.__version__,
-                                         "tasks": [t.name for t in task_list], "rows": rows})
+            results_io.write_json_atomic(FLAGS.out, {"settings": settings, "device": device, "jax": jax.__version__,
+                                                      "tasks": [t.name for t in task_list], "rows": rows})
 
     add(sequential(env, policy, FLAGS.seq_episodes))
     for b in sizes:
@@ -149,14 +146,6 @@ def main(argv):
               f"{r['x_sequential']:>14.2f}{r['success_rate']:>9.3f}{r['compile_s']:>11.0f}")
     same = ", ".join(f"{r['same_as_sequential']}/{r['same_of']}" for r in rows[1:])
     print(f"episodes identical to the sequential loop's (success, steps), per batch size: {same}")
-
-
-def write_json(path: Path, data: dict) -> None:
-    """Replaces `path` atomically (a crash mid-write leaves the previous file)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
 
 
 if __name__ == "__main__":

@@ -38,7 +38,6 @@ import functools
 import hashlib
 import json
 import os
-import tempfile
 import time
 from pathlib import Path
 from typing import Callable
@@ -47,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import budget, checkpoint, drafter, hybrid, retrieval, spec_decode, vla
+from heisd_jax import budget, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 FORMAT = 3
@@ -187,10 +186,11 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     draws = [(obs, cand)] + [synthetic_inputs(cfg, batch, n, seed) for seed in range(1, n_draws)]
     whole_ms = lambda fn, *args: in_graph_ms(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
     skip = jnp.zeros((batch,), bool)
-    ar = jax.jit(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0])
+    def ar(tp, obs):
+        return vla.ar_decode(tp, cfg, obs)[0]
     # Candidates equal to the target's own greedy action: accepted whole, zero draft rounds.
-    exact = jnp.broadcast_to(ar(tp, obs)[:, None], cand.shape)
-    ar_ms = whole_ms(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0], tp, obs)
+    exact = jnp.broadcast_to(jax.jit(ar)(tp, obs)[:, None], cand.shape)
+    ar_ms = whole_ms(ar, tp, obs)
     rows = {"ar": (ar_ms, 0.0, ar_ms, 0.0)}  # option -> (fixed, round, whole decode, its rounds)
     pieces["round_alone_ms"], pieces["zero_round_ms"] = {}, {}
     for tree in dict.fromkeys(o.tree for o in opts if o.tree is not None):
@@ -253,11 +253,7 @@ def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, bat
             log(f"cost table {path} is unreadable ({e}): measuring again")
     table = calibrate(params, cfg, hcfg, batch)
     if path is not None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-        with os.fdopen(fd, "w") as f:
-            json.dump(dataclasses.asdict(table), f, indent=1)
-        os.replace(tmp, path)
+        results_io.write_json_atomic(path, dataclasses.asdict(table))
         log(f"cost table measured in {table.seconds:.1f}s, saved to {path}")
     return table
 
