@@ -10,8 +10,8 @@ barrier, so XLA can neither hoist the work out of the loop nor drop it. The two 
 timed back to back, `reps` times, and the median of the differences is kept: at batch 1
 a piece costs 0.03-0.4 ms and one pair of runs is that noisy.
 
-An option's cost is `fixed + rounds x round` (budget.Costs). A draft round costs more inside
-the decode's `while_loop` (loop predicate, cache commit, masks) than alone, so for a tree
+An option's cost is `fixed + rounds x round` (budget.Costs). A draft round can cost more inside
+the decode's `while_loop` than alone (experiments/bench_round.py), so for a tree
 with a retrieval option both are read off whole decodes: the decode with candidates equal
 to the target's own greedy action (accepted whole: zero rounds) is the fixed part, and the
 slope to the decode on random inputs (which need several rounds) is the round's cost in
