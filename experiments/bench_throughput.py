@@ -4,6 +4,16 @@ per-episode loop, in one run.
   python -m experiments.bench_throughput --method=expert --suites=spatial --batch_sizes=1,64,256,1024 \
       --episodes=1024 --seq_episodes=16 --out=results/bench_throughput.json
 
+Scaling over devices: a batch size written B:D shards B envs over the first D local devices
+(plain B: the most local devices that divide B), so --batch_sizes=1024:1,1024:2,2048:2 times
+one and two devices in the same run and prints each row's ratio to the one-device row of the
+same batch size.
+
+--compile_only compiles every program of the run (the sequential loop's by playing its
+warm-up episode, each batch size's rollout ahead of time) and times nothing: with
+JAX_COMPILATION_CACHE_DIR set, several such processes can compile at once on a many-core
+host, and the timed run then loads its programs from that cache.
+
 Batched: `heisd_jax.evaluate.BatchRollout`, the evaluator's jitted rollout (one
 `lax.while_loop` over control steps, envs vmapped and sharded over the devices), running
 at least --episodes episodes per batch size in whole batches. Sequential: what LIBERO-style
@@ -35,12 +45,15 @@ FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) in the loop.")
 flags.DEFINE_string("suites", "spatial", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
-flags.DEFINE_list("batch_sizes", ["1", "64", "256", "1024"], "Parallel env counts of the batched evaluator.")
+flags.DEFINE_list("batch_sizes", ["1", "64", "256", "1024"],
+                  "Parallel env counts of the batched evaluator, each B or B:D (B envs sharded over the "
+                  "first D local devices; plain B: the most local devices that divide B).")
 flags.DEFINE_integer("episodes", 1024, "Episodes timed per batch size (rounded up to whole batches).")
 flags.DEFINE_integer("seq_episodes", 16, "Episodes timed in the sequential loop.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
+flags.DEFINE_bool("compile_only", False, "Compile the run's programs (fills JAX_COMPILATION_CACHE_DIR), time nothing.")
 
 
 def episode_list(env: TabletopEnv, n: int) -> np.ndarray:
@@ -53,11 +66,37 @@ def outcome(final, i: int) -> tuple[bool, int]:
     return bool(final.success[i]), int(final.step[i])
 
 
-def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int) -> dict:
-    """Episodes per second of the batched evaluator's rollout at `batch` envs."""
-    n_dev = max(d for d in range(1, jax.device_count() + 1) if batch % d == 0)
-    run = ev.BatchRollout(env, policy, batch, devices=jax.devices()[:n_dev])
+def default_devices(batch: int) -> int:
+    """The most local devices that divide `batch`."""
+    return max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
+
+
+def parse_batch_sizes(items: list[str], available: int) -> list[tuple[int, int]]:
+    """(envs, devices) per --batch_sizes entry "B" or "B:D"; ValueError naming the bad entry."""
+    out = []
+    for item in items:
+        parts = item.strip().split(":")
+        if len(parts) > 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+            raise ValueError(f"--batch_sizes: {item!r} is not B or B:D with positive integers B (envs) "
+                             f"and D (devices)")
+        b = int(parts[0])
+        d = int(parts[1]) if len(parts) == 2 else default_devices(b)
+        if d > available:
+            raise ValueError(f"--batch_sizes: {item!r} asks for {d} devices; {available} are available here")
+        if b % d:
+            raise ValueError(f"--batch_sizes: {item!r}: {b} envs cannot be split evenly over {d} devices")
+        out.append((b, d))
+    return out
+
+
+def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int, n_dev: int) -> dict:
+    """Episodes per second of the batched evaluator's rollout at `batch` envs over the
+    first `n_dev` local devices."""
+    run = ev.BatchRollout(env, policy, batch, devices=jax.local_devices()[:n_dev])
     eps = episode_list(env, math.ceil(n_episodes / batch) * batch)
+    if FLAGS.compile_only:
+        run.compile(run.inputs(*eps[:batch].T))
+        return {}
     run(run.inputs(*eps[:batch].T))  # compile + warm-up
     outcomes = []
     t0 = time.perf_counter()
@@ -92,6 +131,8 @@ def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int) -> dic
     t0 = time.perf_counter()
     episode(*eps[0])  # compile + warm-up
     compile_s = time.perf_counter() - t0
+    if FLAGS.compile_only:
+        return {}
     t0 = time.perf_counter()
     outcomes = [episode(*e) for e in eps]
     dt = time.perf_counter() - t0
@@ -106,9 +147,12 @@ def main(argv):
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
-    sizes = [int(b) for b in FLAGS.batch_sizes if b.strip().isdigit()]
-    if not sizes or len(sizes) != len(FLAGS.batch_sizes) or min(sizes) < 1:
-        raise app.UsageError(f"--batch_sizes must be positive integers, got {','.join(FLAGS.batch_sizes)}")
+    try:
+        sizes = parse_batch_sizes(FLAGS.batch_sizes, jax.local_device_count())
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if not sizes:
+        raise app.UsageError("--batch_sizes is empty")
     if FLAGS.episodes < 1 or FLAGS.seq_episodes < 1:
         raise app.UsageError("--episodes and --seq_episodes must be >= 1")
     env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
@@ -116,7 +160,8 @@ def main(argv):
     device = f"{jax.devices()[0].device_kind} x{jax.device_count()}"
     print(f"{FLAGS.method} on {len(task_list)} tasks, {device}, jax {jax.__version__}", flush=True)
 
-    settings = {k: FLAGS[k].value for k in ("method", "suites", "tasks", "batch_sizes", "episodes", "seq_episodes")}
+    settings = {k: FLAGS[k].value
+                for k in ("method", "suites", "tasks", "batch_sizes", "episodes", "seq_episodes")}
     rows = []
 
     def add(row: dict) -> None:
@@ -128,22 +173,34 @@ def main(argv):
         # Episodes also played by the sequential loop (same initial state and policy keys).
         row["same_of"] = min(len(row["outcomes"]), len(base["outcomes"]))
         row["same_as_sequential"] = sum(a == b for a, b in zip(row["outcomes"], base["outcomes"][:row["same_of"]]))
+        one = [r for r in rows if r["mode"] == "batched" and r["num_envs"] == row["num_envs"] and r["devices"] == 1]
+        row["x_one_device"] = row["episodes_per_s"] / one[0]["episodes_per_s"] if one else None
         rows.append(row)
-        label = "sequential" if row["mode"] == "sequential" else f"batched {row['num_envs']}"
-        print(f"  {label}: {row['episodes_per_s']:.3f} episodes/s ({row['x_sequential']:.2f}x sequential)", flush=True)
+        label = ("sequential" if row["mode"] == "sequential"
+                 else f"batched {row['num_envs']} on {row['devices']} device(s)")
+        scale = f", {row['x_one_device']:.2f}x one device" if row["x_one_device"] and row["devices"] > 1 else ""
+        print(f"  {label}: {row['episodes_per_s']:.3f} episodes/s ({row['x_sequential']:.2f}x sequential{scale})",
+              flush=True)
         if FLAGS.out:
             results_io.write_json_atomic(FLAGS.out, {"settings": settings, "device": device, "jax": jax.__version__,
                                                       "tasks": [t.name for t in task_list], "rows": rows})
 
+    if FLAGS.compile_only:
+        sequential(env, policy, FLAGS.seq_episodes)
+        for b, d in sizes:
+            batched(env, policy, b, FLAGS.episodes, d)
+        print("compiled; nothing timed (--compile_only)")
+        return
     add(sequential(env, policy, FLAGS.seq_episodes))
-    for b in sizes:
-        add(batched(env, policy, b, FLAGS.episodes))
+    for b, d in sizes:
+        add(batched(env, policy, b, FLAGS.episodes, d))
 
     print(f"\n{'mode':<12}{'envs':>6}{'devices':>9}{'episodes':>10}{'episodes/s':>12}{'x sequential':>14}"
-          f"{'success':>9}{'compile s':>11}")
+          f"{'x 1 device':>12}{'success':>9}{'compile s':>11}")
     for r in rows:
+        scale = f"{r['x_one_device']:.2f}" if r["x_one_device"] else "-"
         print(f"{r['mode']:<12}{r['num_envs']:>6}{r['devices']:>9}{r['episodes']:>10}{r['episodes_per_s']:>12.3f}"
-              f"{r['x_sequential']:>14.2f}{r['success_rate']:>9.3f}{r['compile_s']:>11.0f}")
+              f"{r['x_sequential']:>14.2f}{scale:>12}{r['success_rate']:>9.3f}{r['compile_s']:>11.0f}")
     same = ", ".join(f"{r['same_as_sequential']}/{r['same_of']}" for r in rows[1:])
     print(f"episodes identical to the sequential loop's (success, steps), per batch size: {same}")
 
