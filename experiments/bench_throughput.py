@@ -66,9 +66,9 @@ def outcome(final, i: int) -> tuple[bool, int]:
     return bool(final.success[i]), int(final.step[i])
 
 
-def default_devices(batch: int) -> int:
-    """The most local devices that divide `batch`."""
-    return max(d for d in range(1, jax.local_device_count() + 1) if batch % d == 0)
+def default_devices(batch: int, available: int) -> int:
+    """The most of `available` devices that divide `batch`."""
+    return max(d for d in range(1, available + 1) if batch % d == 0)
 
 
 def parse_batch_sizes(items: list[str], available: int) -> list[tuple[int, int]]:
@@ -80,7 +80,7 @@ def parse_batch_sizes(items: list[str], available: int) -> list[tuple[int, int]]
             raise ValueError(f"--batch_sizes: {item!r} is not B or B:D with positive integers B (envs) "
                              f"and D (devices)")
         b = int(parts[0])
-        d = int(parts[1]) if len(parts) == 2 else default_devices(b)
+        d = int(parts[1]) if len(parts) == 2 else default_devices(b, available)
         if d > available:
             raise ValueError(f"--batch_sizes: {item!r} asks for {d} devices; {available} are available here")
         if b % d:
