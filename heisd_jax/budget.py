@@ -16,9 +16,15 @@ Predicted time of option o: `fixed_ms[o] + rounds[o] * round_ms[o]`:
   - `rounds[o]` (`BudgetState`): a running estimate (exponential moving average) of the
     batch's draft rounds per action under o, updated whenever o runs. Options start from
     the fewest rounds their tree allows (0 with retrieval: a whole accepted candidate;
-    ceil(6 / (depth + 1)) without), so every option that could win gets tried, and the
-    estimates of options not chosen drift back towards that optimistic prior
-    (`BudgetConfig.explore`), so a change of regime is noticed.
+    ceil(6 / (depth + 1)) without), so every option that could win gets tried once.
+Retries with a bounded cost: an option predicted slower than the best by `regret` ms is
+re-tried once the time elapsed since it last ran, `idle_ms`, reaches regret / retry_share
+(`BudgetConfig.retry_share`), so re-trying each option costs at most that share of the time
+(as far as the table predicts), however many steps run, and a change of regime is still
+noticed. A retry's observation counts with weight `retry_weight` (its old estimate is stale).
+(Until this design, unchosen estimates drifted back to the optimistic prior at 1% per step,
+which re-tried every losing option about every 100 steps: some 2-3% of AR's time at batch
+256-1,024 on an H200, more than the auto budget could gain there.)
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
 """
@@ -58,7 +64,8 @@ class BudgetConfig:
     mode: str = "fixed"  # "auto": choose per step; "fixed": the HybridConfig's one tree, always
     trees: tuple[tuple[int, int, int], ...] = DEFAULT_TREES
     decay: float = 0.1  # weight of a new observation in the running estimate of rounds
-    explore: float = 0.01  # per step, unchosen options' estimates move this far towards their prior
+    retry_share: float = 0.002  # per option, at most this share of the time goes to re-trying it
+    retry_weight: float = 0.5  # weight of a retry's observation (the option's estimate is stale)
 
     def __post_init__(self):
         if self.mode not in BUDGETS:
@@ -70,8 +77,9 @@ class BudgetConfig:
         for k, d, n in self.trees:
             if k < 1 or d < 1 or not 1 <= n <= k * d:
                 raise ValueError(f"draft tree {k}x{d}x{n}: need top_k >= 1, depth >= 1, 1 <= total <= top_k*depth")
-        if not 0 < self.decay <= 1 or not 0 <= self.explore < 1:
-            raise ValueError(f"need 0 < decay <= 1 and 0 <= explore < 1, got {self.decay}, {self.explore}")
+        if not 0 < self.decay <= 1 or not 0 < self.retry_weight <= 1 or not 0 <= self.retry_share < 1:
+            raise ValueError(f"need 0 < decay <= 1, 0 < retry_weight <= 1 and 0 <= retry_share < 1, got "
+                             f"{self.decay}, {self.retry_weight}, {self.retry_share}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,11 +134,12 @@ class Costs:
 class BudgetState:
     rounds: jnp.ndarray  # [O] running estimate of the batch's draft rounds per action
     runs: jnp.ndarray  # [O] steps each option ran
+    idle_ms: jnp.ndarray  # [O] time spent (as the table predicts it) since each option last ran
 
 
 def init_state(opts: tuple[Option, ...]) -> BudgetState:
     return BudgetState(rounds=jnp.asarray([o.prior_rounds for o in opts], jnp.float32),
-                       runs=jnp.zeros((len(opts),), jnp.float32))
+                       runs=jnp.zeros((len(opts),), jnp.float32), idle_ms=jnp.zeros((len(opts),), jnp.float32))
 
 
 def predicted_ms(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retrieval) -> jnp.ndarray:
@@ -140,17 +149,27 @@ def predicted_ms(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any
     return jnp.where(needs & ~any_retrieval, jnp.inf, pred)
 
 
-def choose(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retrieval) -> jnp.ndarray:
-    """The option with the least expected time per action (ties: the earlier, AR first)."""
-    return jnp.argmin(predicted_ms(costs, state, opts, any_retrieval)).astype(jnp.int32)
+def choose(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retrieval,
+           retry_share: float = 0.0) -> jnp.ndarray:
+    """The option with the least expected time per action (ties: the earlier, AR first), unless
+    a slower option is due for a retry: idle for at least regret / retry_share ms (then the
+    most overdue one)."""
+    pred = predicted_ms(costs, state, opts, any_retrieval)
+    best = jnp.argmin(pred)
+    regret = pred - pred[best]
+    due = jnp.isfinite(pred) & (regret > 0) & (retry_share * state.idle_ms >= regret)
+    overdue = jnp.where(due, retry_share * state.idle_ms - regret, -jnp.inf)
+    return jnp.where(jnp.any(due), jnp.argmax(overdue), best).astype(jnp.int32)
 
 
-def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], chosen, rounds) -> BudgetState:
-    """After option `chosen` ran and the batch needed `rounds` draft rounds."""
-    prior = jnp.asarray([o.prior_rounds for o in opts], jnp.float32)
+def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], costs: Costs, chosen,
+           rounds) -> BudgetState:
+    """After option `chosen` ran and the batch needed `rounds` draft rounds: its estimate
+    moves towards `rounds` (replaced on its first run, weight `retry_weight` after idling,
+    else `decay`); every other option's idle time grows by this step's predicted time."""
     hit = jnp.arange(len(opts)) == chosen
-    seen = (1 - cfg.decay) * state.rounds + cfg.decay * rounds
-    first = state.runs == 0  # the first observation replaces the prior outright
-    ran = jnp.where(first, rounds, seen)
-    drift = state.rounds + cfg.explore * (prior - state.rounds)
-    return BudgetState(rounds=jnp.where(hit, ran, drift), runs=state.runs + hit)
+    weight = jnp.where(state.runs == 0, 1.0, jnp.where(state.idle_ms > 0, cfg.retry_weight, cfg.decay))
+    ran = state.rounds + weight * (rounds - state.rounds)
+    step_ms = costs.fixed_ms[chosen] + rounds * costs.round_ms[chosen]
+    return BudgetState(rounds=jnp.where(hit, ran, state.rounds), runs=state.runs + hit,
+                       idle_ms=jnp.where(hit, 0.0, state.idle_ms + step_ms))

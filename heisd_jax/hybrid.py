@@ -237,7 +237,7 @@ def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_l
 
     branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)] + [tree_branch(t) for t in trees]
     tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[option], branches, None)
-    bstate = budget_lib.update(hcfg.budget, bstate, opts, option, jnp.max(stats["rounds"]))
+    bstate = budget_lib.update(hcfg.budget, bstate, opts, params["costs"], option, jnp.max(stats["rounds"]))
     b = cand.shape[0]
     for i, opt in enumerate(opts):
         stats[f"budget_{opt.name}"] = jnp.full((b,), option == i, jnp.float32)
@@ -296,7 +296,7 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
             raise ValueError('budget "auto" needs params["costs"] (cost_model.load_or_calibrate(...).costs()) and a '
                              "state from init_state(batch, key_spec, hcfg)")
         opts = budget_lib.options(hcfg.budget, hcfg.mode)
-        option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval))
+        option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval), hcfg.budget.retry_share)
         # Plain AR (option 0) means no retrieval work at all: no query (and so no verify-skip).
         plain_ar = option == 0
         n = hcfg.n_candidates

@@ -43,15 +43,63 @@ def test_options_and_chooser_on_synthetic_cost_tables():
 
 
 def test_running_estimates():
-    cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, explore=0.1)
+    cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, retry_weight=0.75)
+    costs = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.1] * 5)
     s = budget.init_state(OPTS)
-    s = budget.update(cfg, s, OPTS, 1, 5.0)  # first observation replaces the prior
+    s = budget.update(cfg, s, OPTS, costs, 1, 5.0)  # first observation replaces the prior
     assert float(s.rounds[1]) == 5.0 and float(s.runs[1]) == 1
-    s = budget.update(cfg, s, OPTS, 1, 3.0)
+    s = budget.update(cfg, s, OPTS, costs, 1, 3.0)  # ran on the step before: weight `decay`
     assert float(s.rounds[1]) == 4.0 and float(s.runs[1]) == 2
-    s = budget.update(cfg, s, OPTS, 3, 6.0)  # option 1 not chosen: drifts towards its prior 3
-    assert float(s.rounds[1]) == pytest.approx(4.0 + 0.1 * (3.0 - 4.0))
-    assert float(s.rounds[3]) == 6.0
+    s = budget.update(cfg, s, OPTS, costs, 3, 6.0)  # option 1 idle for this step's predicted time
+    assert float(s.rounds[1]) == 4.0 and float(s.rounds[3]) == 6.0
+    # steps of 0.5 + 5 * 0.1, 0.5 + 3 * 0.1, 0.5 + 6 * 0.1 ms
+    np.testing.assert_allclose(np.asarray(s.idle_ms), [2.9, 1.1, 2.9, 0.0, 2.9], rtol=1e-6)
+    s = budget.update(cfg, s, OPTS, costs, 1, 0.0)  # a retry after idling: weight `retry_weight`
+    assert float(s.rounds[1]) == pytest.approx(4.0 + 0.75 * (0.0 - 4.0)) and float(s.idle_ms[1]) == 0.0
+
+
+def _simulate(cfg, costs, true_rounds, steps):
+    """The chooser over `steps` steps where option o always needs true_rounds[o] rounds:
+    (runs per option, time spent, time of always running the truly best option)."""
+    state, spent = budget.init_state(OPTS), 0.0
+    true_ms = np.asarray(costs.fixed_ms) + np.asarray(true_rounds) * np.asarray(costs.round_ms)
+    for _ in range(steps):
+        o = int(budget.choose(costs, state, OPTS, jnp.asarray(True), cfg.retry_share))
+        spent += true_ms[o]
+        state = budget.update(cfg, state, OPTS, costs, o, float(true_rounds[o]))
+    return np.asarray(state.runs), spent, steps * true_ms.min()
+
+
+def test_retries_cost_at_most_their_share():
+    # Batch-256-like: every option's optimistic prior beats AR, but in fact all are 30-60% slower.
+    costs = _costs([1.0, 0.5, 0.55, 0.5, 0.6], [0.0, 0.25, 0.25, 0.4, 0.4])
+    true_rounds = [0, 3, 3, 2, 2]  # 1.25, 1.3, 1.3, 1.4 ms vs AR 1.0
+    cfg = budget.BudgetConfig(mode="auto", trees=TREES, retry_share=0.002)
+    runs, spent, best = _simulate(cfg, costs, true_rounds, 2000)
+    # Each losing option: its first try, then a retry whenever its regret is earned back at
+    # 0.2% of the elapsed time: about 2000 * 1.0 * 0.002 / regret (0.25-0.4 ms) more.
+    assert runs[0] >= 2000 - 4 * (1 + 2000 * 0.002 / 0.25) and np.all(runs[1:] >= 1)
+    assert spent / best <= 1 + 4 * 0.002 + 4 * 0.4 / 2000  # shares + the first tries
+    # Without retries only the options whose optimistic prior beats AR (the retrieval ones,
+    # prior 0 rounds) run, once each; the others are never tried.
+    runs0, _, _ = _simulate(dataclasses.replace(cfg, retry_share=0.0), costs, true_rounds, 500)
+    np.testing.assert_array_equal(runs0, [498, 0, 1, 0, 1])
+
+
+def test_retries_notice_a_change_of_regime():
+    costs = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.0, 0.25, 0.25, 0.25, 0.25])
+    cfg = budget.BudgetConfig(mode="auto", trees=TREES, retry_share=0.01)
+    state = budget.init_state(OPTS)
+    for o in range(1, 5):  # every tree tried once and found slow (6 rounds: 2.0 ms vs AR 1.0)
+        state = budget.update(cfg, state, OPTS, costs, o, 6.0)
+    choices = []
+    for _ in range(400):  # then option 4 needs 0 rounds (0.5 ms): a retry finds it, and it stays
+        o = int(budget.choose(costs, state, OPTS, jnp.asarray(True), cfg.retry_share))
+        choices.append(o)
+        state = budget.update(cfg, state, OPTS, costs, o, 0.0 if o == 4 else 6.0)
+    # Found by a retry (AR's regret over the trees' stale 2.0 ms is earned back at 1%), kept;
+    # only the retries of the slower options (each within its 1% share) interrupt it.
+    assert choices.index(4) < 300 and np.mean(np.asarray(choices[-200:]) == 4) >= 0.95
 
 
 _auto = jax.jit(hybrid.decode_auto, static_argnums=(1, 2))
@@ -66,8 +114,9 @@ def test_strict_equals_ar_under_every_budget_option(setup, verify):
     use = jnp.array([True, True, True, False, True, True])  # rows accept 7, 0, 3, -, 1, 7 retrieval tokens
     valid = jnp.ones((B, 3), bool)
     skip = jnp.zeros((B,), bool)
+    p = dict(params, costs=_costs([1.0] * 5, [0.1] * 5))
     for i, opt in enumerate(OPTS):
-        tokens, stats, bstate = _auto(params, CFG, hcfg, budget.init_state(OPTS), jnp.asarray(i), obs, cand, valid,
+        tokens, stats, bstate = _auto(p, CFG, hcfg, budget.init_state(OPTS), jnp.asarray(i), obs, cand, valid,
                                       use, skip)
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens, err_msg=opt.name)
         assert np.all(np.asarray(stats[f"budget_{opt.name}"]) == 1.0)
