@@ -39,7 +39,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) in the loop.")
@@ -64,29 +64,6 @@ def episode_list(env: TabletopEnv, n: int) -> np.ndarray:
 
 def outcome(final, i: int) -> tuple[bool, int]:
     return bool(final.success[i]), int(final.step[i])
-
-
-def default_devices(batch: int, available: int) -> int:
-    """The most of `available` devices that divide `batch`."""
-    return max(d for d in range(1, available + 1) if batch % d == 0)
-
-
-def parse_batch_sizes(items: list[str], available: int) -> list[tuple[int, int]]:
-    """(envs, devices) per --batch_sizes entry "B" or "B:D"; ValueError naming the bad entry."""
-    out = []
-    for item in items:
-        parts = item.strip().split(":")
-        if len(parts) > 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
-            raise ValueError(f"--batch_sizes: {item!r} is not B or B:D with positive integers B (envs) "
-                             f"and D (devices)")
-        b = int(parts[0])
-        d = int(parts[1]) if len(parts) == 2 else default_devices(b, available)
-        if d > available:
-            raise ValueError(f"--batch_sizes: {item!r} asks for {d} devices; {available} are available here")
-        if b % d:
-            raise ValueError(f"--batch_sizes: {item!r}: {b} envs cannot be split evenly over {d} devices")
-        out.append((b, d))
-    return out
 
 
 def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int, n_dev: int) -> dict:
@@ -148,7 +125,7 @@ def main(argv):
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     try:
-        sizes = parse_batch_sizes(FLAGS.batch_sizes, jax.local_device_count())
+        sizes = sharding.parse_batch_devices(FLAGS.batch_sizes, jax.local_device_count())
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     if not sizes:

@@ -30,6 +30,30 @@ def check_batch(num_envs: int, mesh: Mesh) -> None:
                          f"use a multiple of {mesh.size}")
 
 
+def default_devices(batch: int, available: int) -> int:
+    """The most of `available` devices that divide `batch` (1 always does)."""
+    return max(d for d in range(1, available + 1) if batch % d == 0)
+
+
+def parse_batch_devices(items: Sequence[str], available: int) -> list[tuple[int, int]]:
+    """(envs, devices) per entry "B" (the most devices dividing B) or "B:D" (B envs over the
+    first D devices); ValueError naming the bad entry and why."""
+    out = []
+    for item in items:
+        parts = item.strip().split(":")
+        if len(parts) > 2 or not all(p.isdigit() and int(p) > 0 for p in parts):
+            raise ValueError(f"--batch_sizes: {item!r} is not B or B:D with positive integers B (envs) "
+                             f"and D (devices)")
+        b = int(parts[0])
+        d = int(parts[1]) if len(parts) == 2 else default_devices(b, available)
+        if d > available:
+            raise ValueError(f"--batch_sizes: {item!r} asks for {d} devices; {available} are available here")
+        if b % d:
+            raise ValueError(f"--batch_sizes: {item!r}: {b} envs cannot be split evenly over {d} devices")
+        out.append((b, d))
+    return out
+
+
 def shard_batch(mesh: Mesh, tree: Any) -> Any:
     """Splits every array of `tree` along its leading (env) axis over the mesh."""
     return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))
