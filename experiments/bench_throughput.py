@@ -66,12 +66,13 @@ def outcome(final, i: int) -> tuple[bool, int]:
     return bool(final.success[i]), int(final.step[i])
 
 
-def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int, n_dev: int) -> dict:
+def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: int, n_dev: int,
+            compile_only: bool = False) -> dict:
     """Episodes per second of the batched evaluator's rollout at `batch` envs over the
-    first `n_dev` local devices."""
+    first `n_dev` local devices (compile_only: compile it, time nothing, return {})."""
     run = ev.BatchRollout(env, policy, batch, devices=jax.local_devices()[:n_dev])
     eps = episode_list(env, math.ceil(n_episodes / batch) * batch)
-    if FLAGS.compile_only:
+    if compile_only:
         run.compile(run.inputs(*eps[:batch].T))
         return {}
     run(run.inputs(*eps[:batch].T))  # compile + warm-up
@@ -85,7 +86,7 @@ def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: in
             "episodes_per_s": len(eps) / dt, "compile_s": run.compile_seconds, "outcomes": outcomes}
 
 
-def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int) -> dict:
+def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int, compile_only: bool = False) -> dict:
     """Episodes per second of a per-episode loop: one env, one jitted policy call and one
     jitted env step per control step from Python (LIBERO-style). Its compile_s includes the
     warm-up episode."""
@@ -108,7 +109,7 @@ def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int) -> dic
     t0 = time.perf_counter()
     episode(*eps[0])  # compile + warm-up
     compile_s = time.perf_counter() - t0
-    if FLAGS.compile_only:
+    if compile_only:
         return {}
     t0 = time.perf_counter()
     outcomes = [episode(*e) for e in eps]
@@ -163,9 +164,9 @@ def main(argv):
                                                       "tasks": [t.name for t in task_list], "rows": rows})
 
     if FLAGS.compile_only:
-        sequential(env, policy, FLAGS.seq_episodes)
+        sequential(env, policy, FLAGS.seq_episodes, compile_only=True)
         for b, d in sizes:
-            batched(env, policy, b, FLAGS.episodes, d)
+            batched(env, policy, b, FLAGS.episodes, d, compile_only=True)
         print("compiled; nothing timed (--compile_only)")
         return
     add(sequential(env, policy, FLAGS.seq_episodes))

@@ -23,8 +23,9 @@ re-tried once the time elapsed since it last ran, `idle_ms`, reaches regret / re
 (as far as the table predicts), however many steps run, and a change of regime is still
 noticed. A retry's observation counts with weight `retry_weight` (its old estimate is stale).
 (Until this design, unchosen estimates drifted back to the optimistic prior at 1% per step,
-which re-tried every losing option about every 100 steps: some 2-3% of AR's time at batch
-256-1,024 on an H200, more than the auto budget could gain there.)
+which re-tried every losing option about every 90-160 steps, for as long as a run lasted:
+by `experiments/budget_sim.py` on the H200 tables, 8% over AR in 420 steps at batch 256 and
+1,024, against 1% with retries.)
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
 """
@@ -173,3 +174,17 @@ def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], cost
     step_ms = costs.fixed_ms[chosen] + rounds * costs.round_ms[chosen]
     return BudgetState(rounds=jnp.where(hit, ran, state.rounds), runs=state.runs + hit,
                        idle_ms=jnp.where(hit, 0.0, state.idle_ms + step_ms))
+
+
+def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rounds, steps: int,
+             any_retrieval: bool = True) -> tuple[np.ndarray, float]:
+    """The chooser over `steps` steps where option o always needs true_rounds[o] draft rounds
+    and costs what the table predicts for them: (runs per option, total ms). The arithmetic
+    behind the retry bound (tests/test_budget.py, experiments/budget_sim.py), on the host."""
+    true_ms = np.asarray(costs.fixed_ms) + np.asarray(true_rounds) * np.asarray(costs.round_ms)
+    state, spent = init_state(opts), 0.0
+    for _ in range(steps):
+        o = int(choose(costs, state, opts, jnp.asarray(any_retrieval), cfg.retry_share))
+        spent += float(true_ms[o])
+        state = update(cfg, state, opts, costs, o, float(true_rounds[o]))
+    return np.asarray(state.runs), spent

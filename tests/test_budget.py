@@ -59,15 +59,10 @@ def test_running_estimates():
 
 
 def _simulate(cfg, costs, true_rounds, steps):
-    """The chooser over `steps` steps where option o always needs true_rounds[o] rounds:
-    (runs per option, time spent, time of always running the truly best option)."""
-    state, spent = budget.init_state(OPTS), 0.0
+    """(runs per option, time spent, time of always running the truly best option)."""
+    runs, spent = budget.simulate(cfg, costs, OPTS, true_rounds, steps)
     true_ms = np.asarray(costs.fixed_ms) + np.asarray(true_rounds) * np.asarray(costs.round_ms)
-    for _ in range(steps):
-        o = int(budget.choose(costs, state, OPTS, jnp.asarray(True), cfg.retry_share))
-        spent += true_ms[o]
-        state = budget.update(cfg, state, OPTS, costs, o, float(true_rounds[o]))
-    return np.asarray(state.runs), spent, steps * true_ms.min()
+    return runs, spent, steps * true_ms.min()
 
 
 def test_retries_cost_at_most_their_share():
