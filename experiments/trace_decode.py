@@ -1,0 +1,158 @@
+"""Where one decode call's device time goes, per kernel, at large batch sizes.
+
+  python -m experiments.trace_decode --batch_sizes=256,1024 --tree=4x2x8 --trace_dir=/tmp/trace
+
+With the shipped target and drafter on random observations (`cost_model.synthetic_inputs`),
+per batch size, each of these jitted calls is timed (median wall time of --reps calls,
+after a warm-up) and then traced with `jax.profiler` for --trace_calls calls:
+  ar          greedy AR decoding (`vla.ar_decode`)
+  prefill     the target's prompt pass (`vla.prefill_features`)
+  prefill_blk the prompt pass with the retrieval candidates appended (fused verification)
+  zero_round  the HeiSD decode (`hybrid.decode`, fused verification, --tree) with every
+              candidate equal to the target's own greedy action: accepted whole, no draft
+              round; what an option's decode costs besides its rounds
+  random      the same decode on random candidates (several draft rounds)
+Each trace is summarised from its Perfetto JSON: the device's time per call, and the
+kernels (or XLA ops) that take most of it, per device timeline. `zero_round` minus
+`prefill_blk` is the decode's cost outside both the target pass and the rounds. With
+--hlo_dir, each call's optimised HLO is written there too (gzipped text), to map kernel
+names to the program. On the CPU the device timelines are the XLA threads.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import gzip
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from heisd_jax import budget, checkpoint, cost_model, hybrid, vla, vla_policy
+
+FLAGS = flags.FLAGS
+flags.DEFINE_list("batch_sizes", ["256", "1024"], "Batch sizes.")
+flags.DEFINE_string("tree", "4x2x8", "The HeiSD decode's draft tree, TOPKxDEPTHxTOTAL.")
+flags.DEFINE_integer("reps", 5, "Timed calls per function (median).")
+flags.DEFINE_integer("trace_calls", 2, "Calls per function inside its trace (0: no traces).")
+flags.DEFINE_integer("top", 15, "Kernels listed per function and device timeline.")
+flags.DEFINE_string("trace_dir", "/tmp/heisd_trace", "Where the traces go (one folder per function and batch).")
+flags.DEFINE_string("hlo_dir", "", "Also write each function's optimised HLO here.")
+flags.DEFINE_string("out", "", "Optional JSON with the timings and kernel summaries.")
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+
+
+def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int):
+    """{name: (jitted fn, args)} for the calls in the module doc."""
+    tp = params["target"]
+    n = hcfg.n_candidates
+    obs, cand = cost_model.synthetic_inputs(cfg, batch, n)
+    valid = jnp.ones((batch, n), bool)
+    use, skip = jnp.ones((batch,), bool), jnp.zeros((batch,), bool)
+    ar = jax.jit(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0])
+    exact = jnp.broadcast_to(ar(tp, obs)[:, None], cand.shape)
+    dec = jax.jit(lambda p, obs, cand: hybrid.decode(p, cfg, hcfg, obs, cand, valid, use, skip))
+    blk = jax.jit(lambda tp, obs, cand: vla.prefill_with_block(tp, cfg, obs, *hybrid.candidate_block(cand)))
+    return {"ar": (ar, (tp, obs)),
+            "prefill": (jax.jit(lambda tp, obs: vla.prefill_features(tp, cfg, obs)), (tp, obs)),
+            "prefill_blk": (blk, (tp, obs, cand)),
+            "zero_round": (dec, (params, obs, exact)),
+            "random": (dec, (params, obs, cand))}
+
+
+def median_ms(fn, args, reps: int) -> float:
+    jax.block_until_ready(fn(*args))  # compile + warm-up
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return 1e3 * float(np.median(times))
+
+
+def trace(fn, args, calls: int, directory: Path) -> Path | None:
+    with jax.profiler.trace(str(directory), create_perfetto_trace=True):
+        for _ in range(calls):
+            jax.block_until_ready(fn(*args))
+    found = sorted(directory.glob("**/perfetto_trace.json.gz"))
+    return found[-1] if found else None
+
+
+def kernel_summary(path: Path, calls: int, top: int) -> dict:
+    """Per device timeline (process/thread of a device, or the CPU's XLA threads): the
+    summed duration per call of each event name, largest first, and the timeline's total."""
+    events = json.load(gzip.open(path))["traceEvents"]
+    procs, threads = {}, {}
+    for e in events:
+        if e.get("ph") == "M" and e.get("name") == "process_name":
+            procs[e["pid"]] = e["args"]["name"]
+        if e.get("ph") == "M" and e.get("name") == "thread_name":
+            threads[(e["pid"], e["tid"])] = e["args"]["name"]
+    by_line = collections.defaultdict(collections.Counter)
+    for e in events:
+        if e.get("ph") != "X" or "dur" not in e:
+            continue
+        proc, thread = procs.get(e["pid"], ""), threads.get((e["pid"], e.get("tid")), "")
+        on_device = proc.startswith("/device:") or thread.startswith("tf_XLA")
+        if on_device:
+            by_line[f"{proc} | {thread}"][e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
+    return {line: {"total_ms": sum(c.values()), "top": c.most_common(top)} for line, c in by_line.items()}
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        sizes = [int(b) for b in FLAGS.batch_sizes]
+        if min(sizes) < 1 or FLAGS.reps < 1 or FLAGS.trace_calls < 0:
+            raise ValueError("batch sizes and --reps must be >= 1, --trace_calls >= 0")
+        (tree,) = budget.parse_trees(FLAGS.tree)
+    except ValueError as e:
+        raise app.UsageError(f"{e} (--batch_sizes like 256,1024; --tree like 4x2x8)") from e
+    tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    dp = checkpoint.load_drafter(FLAGS.drafter, cfg, tp)[0]
+    hcfg = hybrid.HybridConfig()
+    hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, tree))
+    hcfg.check_fits(cfg)
+    params = {"target": tp, "drafter": dp}
+    print(f"{jax.devices()[0].device_kind}, tree {FLAGS.tree}, fused verification, {hcfg.n_candidates} candidates",
+          flush=True)
+    results = []
+    for batch in sizes:
+        for name, (fn, args) in functions(params, cfg, hcfg, batch).items():
+            row = {"batch": batch, "name": name, "ms": median_ms(fn, args, FLAGS.reps)}
+            if name in ("zero_round", "random"):
+                row["rounds"] = float(jnp.max(fn(*args)[1]["rounds"]))
+            if FLAGS.hlo_dir:
+                hlo = Path(FLAGS.hlo_dir) / f"{name}_{batch}.hlo.txt.gz"
+                hlo.parent.mkdir(parents=True, exist_ok=True)
+                with gzip.open(hlo, "wt") as f:
+                    f.write(fn.lower(*args).compile().as_text())
+            if FLAGS.trace_calls:
+                path = trace(fn, args, FLAGS.trace_calls, Path(FLAGS.trace_dir) / f"{name}_{batch}")
+                row["kernels"] = kernel_summary(path, FLAGS.trace_calls, FLAGS.top) if path else {}
+            results.append(row)
+            rounds = f" ({row['rounds']:.0f} rounds)" if "rounds" in row else ""
+            print(f"\nbatch {batch} {name}: {row['ms']:.3f} ms per call{rounds}", flush=True)
+            for line, s in row.get("kernels", {}).items():
+                print(f"  {line}: {s['total_ms']:.3f} ms per call")
+                for kname, ms in s["top"]:
+                    print(f"    {ms:9.3f}  {kname[:150]}")
+        by = {r["name"]: r["ms"] for r in results if r["batch"] == batch}
+        print(f"\nbatch {batch}: zero-round decode {by['zero_round']:.2f} ms = prefill_blk {by['prefill_blk']:.2f} "
+              f"+ {by['zero_round'] - by['prefill_blk']:.2f} ms outside the target pass (AR {by['ar']:.2f} ms)",
+              flush=True)
+        if FLAGS.out:
+            Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "tree": FLAGS.tree,
+                                                   "rows": results}, indent=1))
+
+
+if __name__ == "__main__":
+    app.run(main)
