@@ -33,11 +33,11 @@ class Drafter(nn.Module):
     cfg: vla.VLAConfig
 
     @nn.compact
-    def __call__(self, emb, feat, layer_k, layer_v, positions, write_slot, mask):
-        """emb, feat [B, T, D] -> predicted features [B, T, D], (k, v) of the layer."""
+    def __call__(self, emb, feat, layer_k, layer_v, positions, cache_mask, block_mask):
+        """emb, feat [B, T, D] -> predicted features [B, T, D], the entries' (k, v)."""
         x = nn.Dense(self.cfg.d_model, use_bias=True, dtype=self.cfg.dtype, name="fc")(
             jnp.concatenate([emb, feat.astype(emb.dtype)], -1))
-        x, (k, v) = vla.DecoderBlock(self.cfg, name="block")(x, layer_k, layer_v, positions, write_slot, mask)
+        x, (k, v) = vla.DecoderBlock(self.cfg, name="block")(x, layer_k, layer_v, positions, cache_mask, block_mask)
         return nn.RMSNorm(dtype=self.cfg.dtype, name="norm")(x), (k, v)
 
 
@@ -46,16 +46,22 @@ def init_params(cfg: vla.VLAConfig, key: jax.Array) -> dict:
     hd = cfg.d_model // cfg.n_heads
     z = jnp.zeros((b, t, cfg.d_model))
     kv = jnp.zeros((b, s, cfg.n_heads, hd), cfg.dtype)
-    return Drafter(cfg).init(key, z, z, kv, kv, jnp.zeros((b, t), jnp.int32), jnp.zeros((b,), jnp.int32),
-                             jnp.ones((b, t, s), bool))["params"]
+    return Drafter(cfg).init(key, z, z, kv, kv, jnp.zeros((b, t), jnp.int32), jnp.ones((b, t, s), bool),
+                             jnp.ones((b, t, t), bool))["params"]
 
 
 def step(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, write_slot, mask):
     """T entries against the drafter cache, their keys/values written at slots
     write_slot..write_slot+T-1 (key_mask/length unchanged). mask [B, T, S] says which slots
     each entry attends to (its own slot included). Returns features [B, T, D] and the cache."""
-    out, (k, v) = Drafter(cfg).apply({"params": dparams}, emb, feat, cache.k[0], cache.v[0], positions, write_slot, mask)
-    return out, cache.replace(k=k[None], v=v[None])
+    t = emb.shape[1]
+    own = write_slot[:, None] + jnp.arange(t)[None]  # [B, T] the entries' slots
+    in_block = jnp.any(jnp.arange(cfg.cache_slots)[None, :, None] == own[:, None, :], -1)  # [B, S]
+    block_mask = jnp.take_along_axis(mask, jnp.broadcast_to(own[:, None, :], (own.shape[0], t, t)), 2)
+    out, (k, v) = Drafter(cfg).apply({"params": dparams}, emb, feat, cache.k[0], cache.v[0], positions,
+                                     mask & ~in_block[:, None], block_mask)
+    write = jax.vmap(lambda c, new, s: jax.lax.dynamic_update_slice(c, new.astype(c.dtype), (s, 0, 0)))
+    return out, cache.replace(k=write(cache.k[0], k, write_slot)[None], v=write(cache.v[0], v, write_slot)[None])
 
 
 def _causal_pass(dparams, cfg: vla.VLAConfig, emb, feat, key_ok):

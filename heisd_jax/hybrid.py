@@ -138,24 +138,27 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
     def with_target(_):
         block = candidate_block(cand)
         zeros_blk = (jnp.zeros((b, n * c, cfg.vocab_size), jnp.float32), jnp.zeros((b, n * c, cfg.d_model), cfg.dtype))
+        kv_shape = (cfg.n_layers, b, n * c, cfg.n_heads, cfg.d_model // cfg.n_heads)
+        zeros_kv = vla.Block(k=jnp.zeros(kv_shape, cfg.dtype), v=jnp.zeros(kv_shape, cfg.dtype))
         if hcfg.verify == "prefill":
             def fused(_):
-                lg, h, x, blg, bh, cache = vla.prefill_with_block(tp, cfg, obs, *block)
-                return lg, h, x, blg, bh.astype(cfg.dtype), cache
+                lg, h, x, blg, bh, cache, kv = vla.prefill_with_block(tp, cfg, obs, *block)
+                return lg, h, x, blg, bh.astype(cfg.dtype), cache, kv
 
             def plain(_):
                 lg, h, x, cache = vla.prefill_features(tp, cfg, obs)
-                return (lg, h, x, *zeros_blk, cache)
-            logits, hidden, x, blogits, bhidden, cache = jax.lax.cond(jnp.any(verify_rows), fused, plain, None)
+                return (lg, h, x, *zeros_blk, cache, zeros_kv)
+            logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(
+                jnp.any(verify_rows), fused, plain, None)
             passes = jnp.ones((b,), jnp.float32)
         else:
             logits, hidden, x, cache = vla.prefill_features(tp, cfg, obs)
 
             def separate(cache):
-                blg, bh, cache = vla.decode(tp, cfg, cache, *block)
-                return blg, bh.astype(cfg.dtype), cache
-            blogits, bhidden, cache = jax.lax.cond(jnp.any(verify_rows), separate, lambda cache: (*zeros_blk, cache),
-                                                   cache)
+                blg, bh, kv = vla.decode(tp, cfg, cache, *block)
+                return blg, bh.astype(cfg.dtype), kv
+            blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
+                                                      lambda cache: (*zeros_blk, zeros_kv), cache)
             passes = 1.0 + verify_rows.astype(jnp.float32)
 
         greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
@@ -181,7 +184,7 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
         hid = jnp.take_along_axis(bhidden, chain[..., None], 1)
         v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
-                                 hidden=hid, cache=vla.commit(cache, chain, jnp.minimum(acc, c)))
+                                 hidden=hid, cache=vla.commit(cache, block_kv, chain, jnp.minimum(acc, c)))
         s1 = spec_decode.advance(tp, dp, cfg, s0, v)
         s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
         s = spec_decode.select_state(acc >= 1, s1, s0)

@@ -6,10 +6,15 @@ Everything is a pure function of (params, cache, inputs):
     prefill(params, cfg, obs)                     prompt pass -> logits, hidden, cache
     decode(params, cfg, cache, tokens, intra)     T tokens against the cache (AR: T = 1;
                                                   tree verification: T nodes + tree mask)
-    commit(cache, src_slots, n)                   keep n of the tokens just decoded
+                                                  -> logits, hidden, their keys/values
+    commit(cache, block, src, n)                  write n of those tokens into the cache
 The KV cache has a static number of slots; each row has its own length and key mask, so
-rows can accept different numbers of tokens. Vocabulary: text ids [0, text_vocab), action
-ids [text_vocab, text_vocab + 256).
+rows can accept different numbers of tokens. A pass never writes the cache: attention
+reads the committed slots and the pass's own block (`Block`) side by side, and `commit`
+scatters only the kept tokens' keys/values into the cache, in place. (Writing the block
+into the cache inside the pass made XLA copy the whole cache on every pass: at batch 1,024
+on an H200 that was half of AR's time, `experiments/trace_decode.py`.) Vocabulary: text
+ids [0, text_vocab), action ids [text_vocab, text_vocab + 256).
 """
 
 from __future__ import annotations
@@ -77,6 +82,13 @@ class KVCache:
 
 
 @struct.dataclass
+class Block:
+    """Keys/values of the T tokens of the last pass, not in the cache: [L, B, T, H, Dh]."""
+    k: jnp.ndarray
+    v: jnp.ndarray
+
+
+@struct.dataclass
 class Observation:
     image: jnp.ndarray  # [B, H, W, 3] uint8
     instruction: jnp.ndarray  # [B, text_len] int32 (envs.language ids, PAD = 0)
@@ -111,28 +123,37 @@ class SwiGLU(nn.Module):
 
 
 class DecoderBlock(nn.Module):
-    """Pre-norm causal block writing its keys/values into the cache."""
+    """Pre-norm causal block. Attends to a read-only cache and to its own tokens; returns
+    the tokens' keys/values (the caller decides which to keep)."""
 
     cfg: VLAConfig
 
     @nn.compact
-    def __call__(self, x, layer_k, layer_v, positions, write_slot, mask):
-        # x [B, T, D]; layer_k/v [B, S, H, Dh]; positions [B, T]; write_slot [B]; mask [B, T, S]
+    def __call__(self, x, layer_k, layer_v, positions, cache_mask, block_mask):
+        # x [B, T, D]; layer_k/v [B, S, H, Dh] or None (no cache); positions [B, T];
+        # cache_mask [B, T, S] (which cache slots each token sees; None without a cache);
+        # block_mask [B, T, T] (which of the block's tokens each sees, itself included).
         cfg = self.cfg
         b, t, d = x.shape
         hd = d // cfg.n_heads
         h = nn.RMSNorm(dtype=cfg.dtype, name="attn_norm")(x)
         qkv = nn.Dense(3 * d, use_bias=False, dtype=cfg.dtype, name="qkv")(h).reshape(b, t, 3, cfg.n_heads, hd)
         q, k, v = rope(qkv[:, :, 0], positions, cfg.rope_base), rope(qkv[:, :, 1], positions, cfg.rope_base), qkv[:, :, 2]
-        write = jax.vmap(lambda c, new, s: jax.lax.dynamic_update_slice(c, new.astype(c.dtype), (s, 0, 0)))
-        layer_k, layer_v = write(layer_k, k, write_slot), write(layer_v, v, write_slot)
-        logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32) / jnp.sqrt(hd)
-        logits = jnp.where(mask[:, None], logits, NEG_INF)
+        k, v = k.astype(cfg.dtype), v.astype(cfg.dtype)
+        scale = 1.0 / jnp.sqrt(hd)
+        logits = jnp.einsum("bthd,bshd->bhts", q, k).astype(jnp.float32) * scale
+        logits = jnp.where(block_mask[:, None], logits, NEG_INF)
+        if layer_k is not None:
+            cache_logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32) * scale
+            logits = jnp.concatenate([jnp.where(cache_mask[:, None], cache_logits, NEG_INF), logits], -1)
         attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
-        out = jnp.einsum("bhts,bshd->bthd", attn, layer_v).reshape(b, t, d)
-        x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out)
+        s = 0 if layer_k is None else layer_k.shape[1]
+        out = jnp.einsum("bhts,bshd->bthd", attn[..., s:], v)
+        if layer_k is not None:
+            out = out + jnp.einsum("bhts,bshd->bthd", attn[..., :s], layer_v)
+        x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out.reshape(b, t, d))
         x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(dtype=cfg.dtype, name="mlp_norm")(x))
-        return x, (layer_k, layer_v)
+        return x, (k, v)
 
 
 class VisionEncoder(nn.Module):
@@ -181,22 +202,22 @@ class VLA(nn.Module):
     def embed_tokens(self, tokens):
         return self.embed(tokens)
 
-    def run(self, x, cache: KVCache, positions, write_slot, mask):
-        """Decoder over embeddings x [B, T, D]; returns hidden [B, T, D], logits [B, T, V], (k, v)."""
-        x, (k, v) = self.blocks(x, cache.k, cache.v, positions, write_slot, mask)
+    def run(self, x, cache: KVCache | None, positions, cache_mask, block_mask):
+        """Decoder over embeddings x [B, T, D] against a read-only cache (None: none);
+        returns hidden [B, T, D], logits [B, T, V] and the tokens' keys/values [L, B, T, H, Dh]."""
+        ck, cv = (None, None) if cache is None else (cache.k, cache.v)
+        x, (k, v) = self.blocks(x, ck, cv, positions, cache_mask, block_mask)
         hidden = self.final_norm(x)
         return hidden, self.head(hidden).astype(jnp.float32), (k, v)
 
     def __call__(self, obs: Observation, tokens):
         """Initialisation / teacher forcing entry: prompt + tokens [B, T] -> logits of all."""
-        cache = init_cache(self.cfg, obs.image.shape[0])
         x = jnp.concatenate([self.prompt_embeddings(obs), self.embed_tokens(tokens)], 1)
         n = x.shape[1]
-        key_ok = prompt_key_mask(self.cfg, obs.instruction)
-        key_ok = jnp.concatenate([key_ok, jnp.ones(tokens.shape, bool)], 1)
-        mask = causal_mask(n, self.cfg.cache_slots)[None] & _pad_to(key_ok, self.cfg.cache_slots)[:, None, :]
+        key_ok = jnp.concatenate([prompt_key_mask(self.cfg, obs.instruction), jnp.ones(tokens.shape, bool)], 1)
+        mask = causal_mask(n, n)[None] & key_ok[:, None, :]
         positions = jnp.broadcast_to(jnp.arange(n), (x.shape[0], n))
-        hidden, logits, _ = self.run(x, cache, positions, jnp.zeros(x.shape[0], jnp.int32), mask)
+        hidden, logits, _ = self.run(x, None, positions, None, mask)
         return logits, hidden
 
 
@@ -238,7 +259,7 @@ def prefill_features(params, cfg: VLAConfig, obs: Observation):
     """Like `prefill`, also returning what a feature-level drafter reads: the last-layer
     hidden states of every prompt position [B, P, D] and the prompt's input embeddings
     [B, P, D]. Returns (last logits [B, V], hidden [B, P, D], embeddings, cache)."""
-    logits, hidden, x, cache = _prefill(params, cfg, obs, None)
+    logits, hidden, x, cache, _ = _prefill(params, cfg, obs, None)
     return logits[:, cfg.prompt_len - 1], hidden, x, cache
 
 
@@ -248,73 +269,74 @@ def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.nda
     the prefill). The block is laid out as `decode` lays it out after a prefill: depth [B, T]
     = position offset from the prompt's end, intra [B, T, T] = which block tokens each may
     attend to (besides the whole prompt). Returns (last prompt logits [B, V], prompt hidden
-    [B, P, D], prompt embeddings, block logits [B, T, V], block hidden [B, T, D], cache);
-    the cache holds the prompt (length P) and the block's keys/values uncommitted at slots
-    P..P+T-1, so `commit` keeps an accepted path exactly as after `decode`."""
-    logits, hidden, x, cache = _prefill(params, cfg, obs, (tokens, depth, intra))
+    [B, P, D], prompt embeddings, block logits [B, T, V], block hidden [B, T, D], cache,
+    block keys/values); the cache holds the prompt (length P), and `commit(cache, block,
+    ...)` keeps an accepted path exactly as after `decode`."""
+    logits, hidden, x, cache, blk = _prefill(params, cfg, obs, (tokens, depth, intra))
     p = cfg.prompt_len
-    return logits[:, p - 1], hidden[:, :p], x, logits[:, p:], hidden[:, p:], cache
+    return logits[:, p - 1], hidden[:, :p], x, logits[:, p:], hidden[:, p:], cache, blk
 
 
 def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     model = VLA(cfg)
     b = obs.image.shape[0]
     p = cfg.prompt_len
-    cache = init_cache(cfg, b)
-    key_ok = _pad_to(prompt_key_mask(cfg, obs.instruction), cfg.cache_slots)
-    mask = causal_mask(p, cfg.cache_slots)[None] & key_ok[:, None, :]
+    key_ok = prompt_key_mask(cfg, obs.instruction)
+    mask = causal_mask(p, p)[None] & key_ok[:, None, :]
     positions = jnp.broadcast_to(jnp.arange(p), (b, p))
     if block is not None:
         tokens, depth, intra = block
         t = tokens.shape[1]
-        block_mask = key_ok[:, None, :].repeat(t, 1) | _pad_to(
-            jnp.pad(intra, ((0, 0), (0, 0), (p, 0))).reshape(b * t, p + t), cfg.cache_slots).reshape(b, t, -1)
-        mask = jnp.concatenate([mask, block_mask], 1)
+        mask = jnp.concatenate([jnp.pad(mask, ((0, 0), (0, 0), (0, t))),
+                                jnp.concatenate([jnp.broadcast_to(key_ok[:, None, :], (b, t, p)), intra], 2)], 1)
         positions = jnp.concatenate([positions, p + depth], 1)
 
     def fn(m):
         x = m.prompt_embeddings(obs)
         full = x if block is None else jnp.concatenate([x, m.embed_tokens(block[0]).astype(x.dtype)], 1)
-        return x, m.run(full, cache, positions, jnp.zeros((b,), jnp.int32), mask)
+        return x, m.run(full, None, positions, None, mask)
 
     x, (hidden, logits, (k, v)) = nn.apply(fn, model)({"params": params})
-    cache = KVCache(k=k, v=v, key_mask=key_ok, length=jnp.full((b,), p, jnp.int32))
-    return logits, hidden, x, cache
+    pad = ((0, 0), (0, 0), (0, cfg.cache_slots - p), (0, 0), (0, 0))
+    cache = KVCache(k=jnp.pad(k[:, :, :p], pad), v=jnp.pad(v[:, :, :p], pad), key_mask=_pad_to(key_ok, cfg.cache_slots),
+                    length=jnp.full((b,), p, jnp.int32))
+    return logits, hidden, x, cache, Block(k=k[:, :, p:], v=v[:, :, p:])
 
 
 def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
-    """T tokens [B, T] against the cache, written at slots length..length+T-1 (not committed).
+    """T tokens [B, T] against the cache (which is not changed).
 
     depth [B, T]: each token's position offset from the cache length (AR: 0; tree: node
     depth); intra [B, T, T] bool: which of the T new tokens each may attend to (AR: causal;
-    tree: ancestors and itself). Returns logits [B, T, V], hidden [B, T, D] and the cache
-    holding the new keys/values (key_mask and length unchanged until `commit`).
+    tree: ancestors and itself). Returns logits [B, T, V], hidden [B, T, D] and the tokens'
+    keys/values (`Block`), which `commit` writes into the cache.
     """
     model = VLA(cfg)
     b, t = tokens.shape
     slots = jnp.arange(cfg.cache_slots)
-    rel = slots[None, :] - cache.length[:, None]  # [B, S] slot index relative to the block
-    in_block = (rel >= 0) & (rel < t)
-    new_ok = jnp.take_along_axis(intra, jnp.clip(rel, 0, t - 1)[:, None, :].repeat(t, 1), axis=2) & in_block[:, None]
-    mask = (cache.key_mask & (rel < 0))[:, None, :] | new_ok  # [B, T, S]
+    committed = cache.key_mask & (slots[None, :] < cache.length[:, None])  # [B, S]
     positions = cache.length[:, None] + depth
 
     def fn(m):
-        return m.run(m.embed_tokens(tokens), cache, positions, cache.length, mask)
+        return m.run(m.embed_tokens(tokens), cache, positions, jnp.broadcast_to(committed[:, None], (b, t, cfg.cache_slots)),
+                     intra)
 
     hidden, logits, (k, v) = nn.apply(fn, model)({"params": params})
-    return logits, hidden, cache.replace(k=k, v=v)
+    return logits, hidden, Block(k=k, v=v)
 
 
-def commit(cache: KVCache, src: jnp.ndarray, n: jnp.ndarray) -> KVCache:
-    """Keeps n[b] of the tokens last decoded: the ones at block offsets src[b, :n[b]] move to
-    slots length..length+n-1 (in that order); the rest of the block is dropped.
+def commit(cache: KVCache, block: Block, src: jnp.ndarray, n: jnp.ndarray) -> KVCache:
+    """Keeps n[b] of the block's tokens: the ones at block offsets src[b, :n[b]] go to slots
+    length..length+n-1 (in that order); the rest of the block is dropped. One scatter of
+    the kept keys/values into the cache (in place when the old cache is not used again).
     src [B, K] int (block offsets, K static), n [B] int <= K."""
-    def move(layer_c, length, s):  # one layer of one row: [S, H, Dh]
-        return jax.lax.dynamic_update_slice(layer_c, layer_c[length + s], (length, 0, 0))
-
-    mv = jax.vmap(jax.vmap(move, in_axes=(0, 0, 0)), in_axes=(0, None, None))  # over layers, then rows
-    k, v = mv(cache.k, cache.length, src), mv(cache.v, cache.length, src)
+    b, kk = src.shape
+    rows = jnp.broadcast_to(jnp.arange(b)[:, None], (b, kk))
+    j = jnp.arange(kk)[None]
+    dst = jnp.where(j < n[:, None], cache.length[:, None] + j, cache.key_mask.shape[1])  # out of range: dropped
+    take = lambda x: x[:, rows, src]  # noqa: E731  [L, B, K, H, Dh]
+    k = cache.k.at[:, rows, dst].set(take(block.k), mode="drop")
+    v = cache.v.at[:, rows, dst].set(take(block.v), mode="drop")
     slots = jnp.arange(cache.key_mask.shape[1])
     new_len = cache.length + n
     key_mask = (cache.key_mask & (slots[None] < cache.length[:, None])) | (
@@ -352,8 +374,8 @@ def ar_decode(params, cfg: VLAConfig, obs: Observation):
 
     def step(carry, _):
         cache, tok = carry
-        lg, _, cache = decode(params, cfg, cache, tok[:, None], jnp.zeros((b, 1), jnp.int32), causal1)
-        cache = commit(cache, jnp.zeros((b, 1), jnp.int32), jnp.ones((b,), jnp.int32))
+        lg, _, blk = decode(params, cfg, cache, tok[:, None], jnp.zeros((b, 1), jnp.int32), causal1)
+        cache = commit(cache, blk, jnp.zeros((b, 1), jnp.int32), jnp.ones((b,), jnp.int32))
         nxt = jnp.argmax(action_logits(cfg, lg[:, 0]), -1) + cfg.first_action_id
         return (cache, nxt), nxt
 

@@ -47,14 +47,15 @@ def test_prefill_with_block_equals_prefill_then_decode(setup):
     tp = params["target"]
     cand, _ = _candidates(ar_tokens, np.random.default_rng(0))
     block = hybrid.candidate_block(cand)
-    lg, h, x, blg, bh, cache = vla.prefill_with_block(tp, CFG, obs, *block)
+    lg, h, x, blg, bh, cache, kv = vla.prefill_with_block(tp, CFG, obs, *block)
     lg2, h2, x2, cache2 = vla.prefill_features(tp, CFG, obs)
-    blg2, bh2, cache2 = vla.decode(tp, CFG, cache2, *block)
+    blg2, bh2, kv2 = vla.decode(tp, CFG, cache2, *block)
     np.testing.assert_allclose(np.asarray(lg), np.asarray(lg2), atol=2e-4)
     np.testing.assert_allclose(np.asarray(blg), np.asarray(blg2), atol=2e-4)
-    n = CFG.prompt_len + block[0].shape[1]
-    np.testing.assert_allclose(np.asarray(cache.k[:, :, :n]), np.asarray(cache2.k[:, :, :n]), atol=2e-5)
+    for mine, ref in ((cache.k, cache2.k), (kv.k, kv2.k), (kv.v, kv2.v)):
+        np.testing.assert_allclose(np.asarray(mine), np.asarray(ref), atol=2e-5)
     np.testing.assert_array_equal(np.asarray(cache.length), np.asarray(cache2.length))
+    np.testing.assert_array_equal(np.asarray(cache.key_mask), np.asarray(cache2.key_mask))
 
 
 @pytest.mark.parametrize("verify", ["prefill", "separate"])

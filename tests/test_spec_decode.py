@@ -151,8 +151,8 @@ def test_tree_verification_equals_sequential_decoding_of_each_path(params):
             assert [j for j in range(1, block.shape[1]) if bool(intra[b, n, j])] is not None
         c = cache
         for j in path:  # row 0's path (rows differ; checked on row 0)
-            lg, _, c = vla.decode(tp, CFG, c, block[:, j:j + 1], jnp.zeros((B, 1), jnp.int32), one)
-            c = vla.commit(c, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
+            lg, _, kv = vla.decode(tp, CFG, c, block[:, j:j + 1], jnp.zeros((B, 1), jnp.int32), one)
+            c = vla.commit(c, kv, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
         np.testing.assert_allclose(np.asarray(lg[0, 0]), np.asarray(tree_logits[0, n]), atol=2e-4)
 
 
@@ -173,8 +173,8 @@ def test_cache_after_commit_equals_one_by_one_decoding():
         toks = [int(root[b])] + [int(t) for t in np.asarray(v.tokens[b, :n_acc[b]])]
         c = jax.tree.map(lambda a: a, cache)
         for t in toks:
-            _, _, c = vla.decode(tp, CFG, c, jnp.full((B, 1), t), jnp.zeros((B, 1), jnp.int32), one)
-            c = vla.commit(c, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
+            _, _, kv = vla.decode(tp, CFG, c, jnp.full((B, 1), t), jnp.zeros((B, 1), jnp.int32), one)
+            c = vla.commit(c, kv, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
         n = CFG.prompt_len + len(toks)
         assert int(v.cache.length[b]) == n
         np.testing.assert_allclose(np.asarray(v.cache.k[:, b, :n]), np.asarray(c.k[:, b, :n]), atol=2e-5)

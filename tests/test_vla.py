@@ -49,8 +49,8 @@ def test_ar_decoding_with_cache_matches_full_forward_logits(model):
     np.testing.assert_allclose(lg, full[:, p - 1], atol=1e-4)
     # Each cached single-token decode == uncached logits at that position.
     for i in range(6):
-        lg, _, cache = f["decode"](params, cache, toks[:, i:i + 1], jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
-        cache = vla.commit(cache, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
+        lg, _, blk = f["decode"](params, cache, toks[:, i:i + 1], jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
+        cache = vla.commit(cache, blk, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
         np.testing.assert_allclose(lg[:, 0], full[:, p + i], atol=1e-4)
     # Greedy tokens are what the full forward predicts.
     pred = jnp.argmax(vla.action_logits(CFG, full[:, p - 1:p + 6]), -1) + CFG.first_action_id
@@ -75,11 +75,11 @@ def test_multi_token_block_and_commit_equal_sequential_decoding(model):
     _, _, cache = f["prefill"](params, obs)
     # Decode 3 tokens at once with a causal mask: logits equal the uncached ones.
     causal = jnp.broadcast_to(jnp.tril(jnp.ones((3, 3), bool)), (B, 3, 3))
-    lg, _, c3 = f["decode"](params, cache, toks[:, :3], jnp.broadcast_to(jnp.arange(3), (B, 3)), causal)
+    lg, _, blk3 = f["decode"](params, cache, toks[:, :3], jnp.broadcast_to(jnp.arange(3), (B, 3)), causal)
     np.testing.assert_allclose(lg, full[:, p:p + 3], atol=1e-4)
     # Rows keep different numbers of them; the next token then sees exactly those.
     n = jnp.array([1, 2, 3])
-    c = vla.commit(c3, jnp.broadcast_to(jnp.arange(3), (B, 3)), n)
+    c = vla.commit(cache, blk3, jnp.broadcast_to(jnp.arange(3), (B, 3)), n)
     np.testing.assert_array_equal(c.length, p + n)
     nxt = toks[jnp.arange(B), n][:, None]
     lg, _, _ = f["decode"](params, c, nxt, jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
@@ -97,12 +97,12 @@ def test_commit_moves_the_chosen_tokens_into_place(model):
     block = jnp.concatenate([toks[:, :1], junk, toks[:, 1:2]], 1)
     depth = jnp.broadcast_to(jnp.array([0, 1, 1]), (B, 3))
     tree = jnp.broadcast_to(jnp.array([[1, 0, 0], [1, 1, 0], [1, 0, 1]], bool), (B, 3, 3))
-    _, _, c = f["decode"](params, cache, block, depth, tree)
-    c = vla.commit(c, jnp.broadcast_to(jnp.array([0, 2]), (B, 2)), jnp.full((B,), 2))
+    _, _, blk = f["decode"](params, cache, block, depth, tree)
+    c = vla.commit(cache, blk, jnp.broadcast_to(jnp.array([0, 2]), (B, 2)), jnp.full((B,), 2))
     # The cache now equals one that decoded t0, t1 one by one.
-    _, _, ref = f["decode"](params, cache, toks[:, :2], jnp.broadcast_to(jnp.arange(2), (B, 2)),
+    _, _, blk = f["decode"](params, cache, toks[:, :2], jnp.broadcast_to(jnp.arange(2), (B, 2)),
                             jnp.broadcast_to(jnp.tril(jnp.ones((2, 2), bool)), (B, 2, 2)))
-    ref = vla.commit(ref, jnp.broadcast_to(jnp.arange(2), (B, 2)), jnp.full((B,), 2))
+    ref = vla.commit(cache, blk, jnp.broadcast_to(jnp.arange(2), (B, 2)), jnp.full((B,), 2))
     np.testing.assert_array_equal(c.length, ref.length)
     np.testing.assert_array_equal(c.key_mask, ref.key_mask)
     live = np.asarray(ref.key_mask)[None, :, :, None, None]
