@@ -49,7 +49,7 @@ import numpy as np
 from heisd_jax import budget, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
-FORMAT = 3
+FORMAT = 4  # 4: the copy-free KV cache (vla.Block) changed every cost; older tables are re-measured
 DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
 
 
