@@ -21,20 +21,17 @@ names to the program. On the CPU the device timelines are the XLA threads.
 
 from __future__ import annotations
 
-import collections
 import dataclasses
 import gzip
 import json
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from heisd_jax import budget, checkpoint, cost_model, hybrid, vla, vla_policy
+from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["256", "1024"], "Batch sizes.")
@@ -67,45 +64,6 @@ def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int)
             "random": (dec, (params, obs, cand))}
 
 
-def median_ms(fn, args, reps: int) -> float:
-    jax.block_until_ready(fn(*args))  # compile + warm-up
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    return 1e3 * float(np.median(times))
-
-
-def trace(fn, args, calls: int, directory: Path) -> Path | None:
-    with jax.profiler.trace(str(directory), create_perfetto_trace=True):
-        for _ in range(calls):
-            jax.block_until_ready(fn(*args))
-    found = sorted(directory.glob("**/perfetto_trace.json.gz"))
-    return found[-1] if found else None
-
-
-def kernel_summary(path: Path, calls: int, top: int) -> dict:
-    """Per device timeline (process/thread of a device, or the CPU's XLA threads): the
-    summed duration per call of each event name, largest first, and the timeline's total."""
-    events = json.load(gzip.open(path))["traceEvents"]
-    procs, threads = {}, {}
-    for e in events:
-        if e.get("ph") == "M" and e.get("name") == "process_name":
-            procs[e["pid"]] = e["args"]["name"]
-        if e.get("ph") == "M" and e.get("name") == "thread_name":
-            threads[(e["pid"], e["tid"])] = e["args"]["name"]
-    by_line = collections.defaultdict(collections.Counter)
-    for e in events:
-        if e.get("ph") != "X" or "dur" not in e:
-            continue
-        proc, thread = procs.get(e["pid"], ""), threads.get((e["pid"], e.get("tid")), "")
-        on_device = proc.startswith("/device:") or thread.startswith("tf_XLA")
-        if on_device:
-            by_line[f"{proc} | {thread}"][e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
-    return {line: {"total_ms": sum(c.values()), "top": c.most_common(top)} for line, c in by_line.items()}
-
-
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -127,7 +85,8 @@ def main(argv):
     results = []
     for batch in sizes:
         for name, (fn, args) in functions(params, cfg, hcfg, batch).items():
-            row = {"batch": batch, "name": name, "ms": median_ms(fn, args, FLAGS.reps)}
+            row = {"batch": batch, "name": name,
+                   "ms": 1e3 * timing.median_seconds(lambda: fn(*args), FLAGS.reps)}
             if name in ("zero_round", "random"):
                 row["rounds"] = float(jnp.max(fn(*args)[1]["rounds"]))
             if FLAGS.hlo_dir:
@@ -136,8 +95,9 @@ def main(argv):
                 with gzip.open(hlo, "wt") as f:
                     f.write(fn.lower(*args).compile().as_text())
             if FLAGS.trace_calls:
-                path = trace(fn, args, FLAGS.trace_calls, Path(FLAGS.trace_dir) / f"{name}_{batch}")
-                row["kernels"] = kernel_summary(path, FLAGS.trace_calls, FLAGS.top) if path else {}
+                path = timing.trace_calls(lambda: fn(*args), FLAGS.trace_calls,
+                                          Path(FLAGS.trace_dir) / f"{name}_{batch}")
+                row["kernels"] = timing.kernel_summary(path, FLAGS.trace_calls, FLAGS.top) if path else {}
             results.append(row)
             rounds = f" ({row['rounds']:.0f} rounds)" if "rounds" in row else ""
             print(f"\nbatch {batch} {name}: {row['ms']:.3f} ms per call{rounds}", flush=True)
