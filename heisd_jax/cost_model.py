@@ -17,8 +17,9 @@ to the target's own greedy action (accepted whole: zero rounds) is the fixed par
 slope to the decode on random inputs (which need several rounds) is the round's cost in
 context. (At large batches some row may still need rounds there: f32 matmuls run as TF32
 on GPUs and a near-tie argmax can differ between the fused prefill and AR's passes; at
-batch 1,024 on an H200 the anchor ran 3 rounds. Its measured rounds are subtracted.) The tree's drafter-only option shares that round cost; its fixed part is the
-median over random input draws of (decode - rounds x round). Without a retrieval option,
+batch 1,024 on an H200 the anchor ran 3 rounds. Its measured rounds are subtracted.) The
+tree's drafter-only option shares that round cost; its fixed part is the median over
+random input draws of (decode - rounds x round). Without a retrieval option,
 the round measured alone is used. (FORMAT 3. Formats 1-2 subtracted rounds measured alone
 and over-predicted the fixed part: at batch 16 on an H100, 2.4-3.1 ms against a 0.92 ms
 prefill, so AR was chosen where a fixed 4x2x8 budget ran at AR's speed.)

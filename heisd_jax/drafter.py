@@ -56,7 +56,8 @@ def step(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, 
     each entry attends to (its own slot included). Returns features [B, T, D] and the cache."""
     t = emb.shape[1]
     own = write_slot[:, None] + jnp.arange(t)[None]  # [B, T] the entries' slots
-    in_block = jnp.any(jnp.arange(cfg.cache_slots)[None, :, None] == own[:, None, :], -1)  # [B, S]
+    rel = jnp.arange(cfg.cache_slots)[None] - write_slot[:, None]
+    in_block = (rel >= 0) & (rel < t)  # [B, S] slots the entries overwrite
     block_mask = jnp.take_along_axis(mask, jnp.broadcast_to(own[:, None, :], (own.shape[0], t, t)), 2)
     out, (k, v) = Drafter(cfg).apply({"params": dparams}, emb, feat, cache.k[0], cache.v[0], positions,
                                      mask & ~in_block[:, None], block_mask)

@@ -143,14 +143,15 @@ class DecoderBlock(nn.Module):
         scale = 1.0 / jnp.sqrt(hd)
         logits = jnp.einsum("bthd,bshd->bhts", q, k).astype(jnp.float32) * scale
         logits = jnp.where(block_mask[:, None], logits, NEG_INF)
-        if layer_k is not None:
+        if layer_k is None:
+            attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
+            out = jnp.einsum("bhts,bshd->bthd", attn, v)
+        else:  # one softmax over [cache slots, block tokens]
             cache_logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32) * scale
-            logits = jnp.concatenate([jnp.where(cache_mask[:, None], cache_logits, NEG_INF), logits], -1)
-        attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
-        s = 0 if layer_k is None else layer_k.shape[1]
-        out = jnp.einsum("bhts,bshd->bthd", attn[..., s:], v)
-        if layer_k is not None:
-            out = out + jnp.einsum("bhts,bshd->bthd", attn[..., :s], layer_v)
+            cache_logits = jnp.where(cache_mask[:, None], cache_logits, NEG_INF)
+            attn = jax.nn.softmax(jnp.concatenate([cache_logits, logits], -1), -1).astype(cfg.dtype)
+            out = (jnp.einsum("bhts,bshd->bthd", attn[..., :-t], layer_v)
+                   + jnp.einsum("bhts,bshd->bthd", attn[..., -t:], v))
         x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out.reshape(b, t, d))
         x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(dtype=cfg.dtype, name="mlp_norm")(x))
         return x, (k, v)
