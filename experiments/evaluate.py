@@ -45,6 +45,8 @@ flags.DEFINE_enum("retrieval_acceptance", None, list(hybrid.RETRIEVAL_ACCEPTANCE
                   "retrieval/heisd: acceptance rule for retrieval drafts (heisd default seq_relaxed).")
 flags.DEFINE_integer("retrieval_relax_bins", None, "token_relaxed retrieval acceptance: bins (default 9).")
 flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4).")
+flags.DEFINE_integer("recent_candidates", None, "retrieval/heisd: the env's own last executed actions verified as "
+                     "further candidates each retrieval step (default: heisd 4, retrieval 0).")
 flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
 flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict acceptance).")
 flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
@@ -60,7 +62,7 @@ flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off", "budget",
+                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off", "budget",
                 "budget_trees", "dtype")
 
 

@@ -129,6 +129,7 @@ def main(argv):
             k = retrieval.make_keys(meta["key_spec"], meta["tok"], pstate.prev_actions, obs.proprio)
             task = gidx[states.info.task_id]
             cand = jax.block_until_ready(fns["retrieval"](params, k, task))[0]
+            cand = jnp.concatenate([cand, pstate.recent], 1)  # the env's recent actions are verified too
             out.update(retrieval=(fns["retrieval"], params, k, task), **{"prefill+cand": (fns["prefill+cand"], params, obs, cand)})
         return out
 

@@ -49,7 +49,7 @@ flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpo
 def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int):
     """{name: (jitted fn, args)} for the calls in the module doc."""
     tp = params["target"]
-    n = hcfg.n_candidates
+    n = hcfg.n_verified
     obs, cand = cost_model.synthetic_inputs(cfg, batch, n)
     valid = jnp.ones((batch, n), bool)
     use, skip = jnp.ones((batch,), bool), jnp.zeros((batch,), bool)
@@ -80,7 +80,7 @@ def main(argv):
     hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, tree))
     hcfg.check_fits(cfg)
     params = {"target": tp, "drafter": dp}
-    print(f"{jax.devices()[0].device_kind}, tree {FLAGS.tree}, fused verification, {hcfg.n_candidates} candidates",
+    print(f"{jax.devices()[0].device_kind}, tree {FLAGS.tree}, fused verification, {hcfg.n_verified} candidates",
           flush=True)
     results = []
     for batch in sizes:

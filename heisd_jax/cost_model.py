@@ -100,7 +100,8 @@ def table_key(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int)
     dev = jax.devices()[0]
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "target": checkpoint.fingerprint(params["target"]), "drafter": checkpoint.fingerprint(params["drafter"]),
-            "dtype": cfg.dtype, "batch": int(batch), "n_candidates": hcfg.n_candidates, "verify": hcfg.verify,
+            "dtype": cfg.dtype, "batch": int(batch), "n_candidates": hcfg.n_candidates,
+            "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}
 
 
@@ -148,7 +149,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     whole decode on `n_draws` random input draws."""
     t_start = time.perf_counter()
     tp, dp = params["target"], params["drafter"]
-    n = hcfg.n_candidates
+    n = hcfg.n_verified  # the datastore's candidates and the recent actions
     obs, cand = synthetic_inputs(cfg, batch, n)
     valid = jnp.ones(cand.shape[:2], bool)
     ms = lambda fn, *args: in_graph_ms(fn, args, reps=reps)  # noqa: E731
@@ -183,7 +184,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     query_ms = 0.0  # every option but plain AR queries the datastore first
     if "store" in params:
         keys = jnp.zeros((batch, params["store"].keys.shape[1]), jnp.float32)
-        query_ms = ms(lambda st, k: retrieval.query(st, k, jnp.zeros((batch,), jnp.int32), n)[1], params["store"], keys)
+        query_ms = ms(lambda st, k: retrieval.query(st, k, jnp.zeros((batch,), jnp.int32), hcfg.n_candidates)[1], params["store"], keys)
     pieces["query_ms"] = query_ms
     opts = budget.options(hcfg.budget, hcfg.mode)
     draws = [(obs, cand)] + [synthetic_inputs(cfg, batch, n, seed) for seed in range(1, n_draws)]

@@ -7,7 +7,11 @@ Per env and control step (`step`):
      manipulation). Published: a kinematic metric decides; the formula is our design
      (`heisd_jax.kinematics`).
   2. retrieval: the env's key (recent actions, proprio) queries the datastore for
-     `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`).
+     `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`); the env's own
+     last `recent_candidates` executed actions join them as further candidates (our design:
+     the target's actions repeat from step to step far more often than the datastore's
+     expert actions match them; BENCHMARKS.md, issue 9). The datastore's candidates come
+     first, so verify-skip's "top retrieved action" is always the datastore's.
   3. verify-skip (our rule, `rules.may_skip`): a confident retrieval-mode row executes
      its top candidate with no target pass, at most `k_skip` times in a row.
   4. one target pass for the other rows (`decode`): the prompt prefill, with the candidates'
@@ -52,7 +56,8 @@ class HybridConfig:
     acceptance: str = "seq_relaxed"  # rule for retrieval drafts
     relax_bins: int = 9  # token_relaxed on retrieval drafts
     seq: rules.SeqRelaxedConfig = rules.SeqRelaxedConfig()
-    n_candidates: int = 4
+    n_candidates: int = 4  # retrieved from the datastore
+    recent_candidates: int = 0  # the env's own last executed actions, newest first (our design)
     max_dist: float = float("inf")  # candidates with a squared key distance above this are invalid
     verify: str = "prefill"
     skip: rules.SkipConfig = rules.SkipConfig()
@@ -66,6 +71,8 @@ class HybridConfig:
         _check("verify", self.verify, VERIFY)
         if self.n_candidates < 1:
             raise ValueError(f"n_candidates must be >= 1, got {self.n_candidates}")
+        if self.recent_candidates < 0:
+            raise ValueError(f"recent_candidates must be >= 0, got {self.recent_candidates}")
         if not 0 <= self.relax_bins < 256:
             raise ValueError(f"relax_bins must be in 0..255, got {self.relax_bins}")
         if self.max_dist <= 0:
@@ -73,6 +80,11 @@ class HybridConfig:
         if self.acceptance == "strict" and self.skip.enabled and self.mode != "drafter":
             raise ValueError("verify-skip executes unverified actions: with strict (lossless) retrieval acceptance, "
                              "switch skip off")
+
+    @property
+    def n_verified(self) -> int:
+        """Candidates verified per retrieval-mode step: the datastore's and the recent ones."""
+        return self.n_candidates + self.recent_candidates
 
     @property
     def lossless(self) -> bool:
@@ -86,11 +98,11 @@ class HybridConfig:
         if self.budget.mode == "auto":
             for tree in self.budget.trees:
                 budget_lib.tree_spec(self.spec, tree).check_fits(cfg)
-        need = cfg.prompt_len + self.n_candidates * (ACTION_DIM - 1)
+        need = cfg.prompt_len + self.n_verified * (ACTION_DIM - 1)
         if need > cfg.cache_slots:
-            raise ValueError(f"{self.n_candidates} retrieval candidates need {need} cache slots, the model has "
-                             f"{cfg.cache_slots}; n_candidates must be <= "
-                             f"{(cfg.cache_slots - cfg.prompt_len) // (ACTION_DIM - 1)}")
+            raise ValueError(f"{self.n_candidates} retrieved + {self.recent_candidates} recent candidates need {need} "
+                             f"cache slots, the model has {cfg.cache_slots}; n_candidates + recent_candidates must "
+                             f"be <= {(cfg.cache_slots - cfg.prompt_len) // (ACTION_DIM - 1)}")
 
 
 def accepted_length(hcfg: HybridConfig, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
@@ -255,6 +267,8 @@ class HybridState:
     boundary: kinematics.BoundaryState
     skips: jnp.ndarray  # [B] consecutive skipped target passes
     last_whole: jnp.ndarray  # [B] the last verified retrieval action was accepted whole
+    recent: jnp.ndarray  # [B, recent_candidates, 7] token ids of the last executed actions, newest first
+    recent_valid: jnp.ndarray  # [B, recent_candidates] (False before the episode has that many)
     budget: budget_lib.BudgetState | None = None  # batch-wide running estimates (budget "auto" only)
 
 
@@ -262,9 +276,12 @@ def init_state(batch: int, key_spec: retrieval.KeySpec, hcfg: HybridConfig | Non
     bstate = None
     if hcfg is not None and hcfg.budget.mode == "auto":
         bstate = budget_lib.init_state(budget_lib.options(hcfg.budget, hcfg.mode))
+    r = hcfg.recent_candidates if hcfg is not None else 0
     return HybridState(prev_actions=jnp.zeros((batch, key_spec.history, ACTION_DIM), jnp.float32),
                        prev_lin_vel=jnp.zeros((batch, 3), jnp.float32), boundary=kinematics.boundary_init((batch,)),
-                       skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool), budget=bstate)
+                       skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool),
+                       recent=jnp.zeros((batch, r, ACTION_DIM), jnp.int32), recent_valid=jnp.zeros((batch, r), bool),
+                       budget=bstate)
 
 
 @struct.dataclass
@@ -313,6 +330,11 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
     skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
                           state.skips)
+    if state.recent.shape[1] != hcfg.recent_candidates:
+        raise ValueError(f"the state holds {state.recent.shape[1]} recent actions, the config wants "
+                         f"{hcfg.recent_candidates}: make it with init_state(batch, key_spec, hcfg)")
+    cand = jnp.concatenate([cand, state.recent], 1)
+    valid = jnp.concatenate([valid, state.recent_valid], 1)
     if auto:
         tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, option, obs, cand, valid, use_retrieval, skip)
     else:
@@ -326,6 +348,9 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         prev_actions=history,
         prev_lin_vel=kin.lin_vel.astype(jnp.float32), boundary=boundary,
         skips=jnp.where(skip, state.skips + 1, 0),
-        last_whole=jnp.where(skip, state.last_whole, whole), budget=bstate)
+        last_whole=jnp.where(skip, state.last_whole, whole),
+        recent=jnp.concatenate([tokens[:, None], state.recent], 1)[:, : hcfg.recent_candidates],
+        recent_valid=jnp.concatenate([jnp.ones((b, 1), bool), state.recent_valid], 1)[:, : hcfg.recent_candidates],
+        budget=bstate)
     stats = dict(stats, metric=metric, drafter_mode=(~use_retrieval).astype(jnp.float32))
     return actions, tokens, new, stats

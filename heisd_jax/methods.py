@@ -68,6 +68,7 @@ def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.D
 COMMON_SETTINGS = {"dtype": str}  # every VLA method
 SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}
 HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bins": int, "n_candidates": int,
+                   "recent_candidates": int,
                    "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
                    "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
                    "budget": str, "budget_trees": str}
@@ -137,7 +138,7 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
     return hybrid.HybridConfig(
         spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"],
         relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
-        n_candidates=s.get("n_candidates", 4), max_dist=s.get("max_dist", float("inf")),
+        n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0), max_dist=s.get("max_dist", float("inf")),
         verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
         budget=budget_config(s, settings))
 

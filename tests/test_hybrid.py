@@ -131,6 +131,39 @@ def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(setup):
     np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
 
 
+def test_recent_actions_are_verified_as_candidates(setup):
+    """The env's own last executed actions join the datastore's candidates: on an unchanged
+    observation the previous action is the target's again, so it is accepted whole in the
+    one fused pass (strict: still AR's tokens); the state keeps them newest first."""
+    params, obs, ar_tokens = setup
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    rng = np.random.default_rng(3)
+    wrong = jnp.asarray(rng.integers(CFG.first_action_id, CFG.first_action_id + 256, (B, 7)), jnp.int32)
+    store = retrieval.Datastore(keys=jnp.zeros((B, spec.dim)), sq_norms=jnp.zeros((B,)), tokens=wrong,
+                                task=jnp.arange(B))
+    p = dict(params, store=store)
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    hcfg = dataclasses.replace(STRICT, n_candidates=1, recent_candidates=2)
+    assert hcfg.lossless and hcfg.n_verified == 3
+    run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+    state = hybrid.init_state(B, spec, hcfg)
+    with pytest.raises(ValueError, match="recent actions"):
+        run(p, CFG, hcfg, spec, tok, hybrid.init_state(B, spec), obs, kin, jnp.arange(B))
+    whole = []
+    for t in range(3):
+        _, tokens, state, stats = run(p, CFG, hcfg, spec, tok, state, obs, kin, jnp.arange(B))
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+        np.testing.assert_array_equal(np.asarray(state.recent[:, 0]), ar_tokens)
+        np.testing.assert_array_equal(np.asarray(state.recent_valid), np.arange(2)[None].repeat(B, 0) <= t)
+        whole.append(np.asarray(stats["retrieval_whole"]))
+    assert not whole[0].all() and whole[1].all() and whole[2].all()
+    np.testing.assert_array_equal(np.asarray(stats["target_passes"]), 1)
+    with pytest.raises(ValueError, match="n_candidates \\+ recent_candidates must be <= 12"):
+        dataclasses.replace(hcfg, recent_candidates=12).check_fits(vla.VLAConfig(cache_slots=160))
+
+
 def test_config_rejects_bad_settings():
     with pytest.raises(ValueError, match="valid: hybrid, retrieval, drafter"):
         hybrid.HybridConfig(mode="sometimes")
@@ -138,7 +171,7 @@ def test_config_rejects_bad_settings():
         hybrid.HybridConfig(acceptance="loose")
     with pytest.raises(ValueError, match="switch skip off"):
         hybrid.HybridConfig(acceptance="strict")
-    with pytest.raises(ValueError, match="n_candidates must be <="):
+    with pytest.raises(ValueError, match="n_candidates \+ recent_candidates must be <="):
         hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
     with pytest.raises(ValueError, match="tau_on > tau_off"):
         kinematics.BoundaryConfig(tau_on=0.5, tau_off=0.8)
