@@ -46,7 +46,7 @@ flags.DEFINE_enum("retrieval_acceptance", None, list(hybrid.RETRIEVAL_ACCEPTANCE
 flags.DEFINE_integer("retrieval_relax_bins", None, "token_relaxed retrieval acceptance: bins (default 9).")
 flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4).")
 flags.DEFINE_integer("recent_candidates", None, "retrieval/heisd: the env's own last executed actions verified as "
-                     "further candidates each retrieval step (default: heisd 4, retrieval 0).")
+                     "further candidates each retrieval step (default: heisd 4, retrieval 0; our design).")
 flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
 flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict acceptance).")
 flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
@@ -57,13 +57,15 @@ flags.DEFINE_enum("budget", None, list(budget.BUDGETS),
                   "one fixed tree (fixed).")
 flags.DEFINE_string("budget_trees", None, "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
                     "separated by '/' (default: the --top_k/--depth/--total_tokens tree if given, else 4x2x8/8x4x32).")
+flags.DEFINE_float("budget_forget", None, "budget=auto: per unchosen step, share by which an option's estimate "
+                   "returns to its long-run mean (default 0.05; 0 = never).")
 flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "VLA methods: parameters and KV cache in this dtype (default float32).")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "skip", "k_skip", "tau_on", "tau_off", "budget",
-                "budget_trees", "dtype")
+                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "skip", "k_skip", "tau_on",
+                "tau_off", "budget", "budget_trees", "budget_forget", "dtype")
 
 
 def method_settings() -> dict:

@@ -23,6 +23,14 @@ re-tried once the time elapsed since it last ran, `idle_ms`, reaches regret / re
 (`BudgetConfig.retry_share`), so re-trying each option costs at most that share of the time
 (as far as the table predicts), however many steps run, and a change of regime is still
 noticed. A retry's observation counts with weight `retry_weight` (its old estimate is stale).
+Forgetting a phase: each option also keeps the plain mean of every batch's rounds it has
+run (`BudgetState.mean_rounds`); while an option is not chosen, its running estimate returns
+towards that long-run mean by `forget` per step. A few slow steps (fine manipulation in
+every row, say) make the estimate pessimistic and AR takes over; without forgetting, the
+option then stayed unchosen until its retry came due, about regret / retry_share ms later
+(~80 steps at batch 1 on an H200, half an episode), although the phase had passed. With
+it, an option whose long run beats AR comes back after about 1 / forget steps; one whose
+long run loses stays where it is (the mean is no better than its estimate).
 (Until this design, unchosen estimates drifted back to the optimistic prior at 1% per step,
 which re-tried every losing option about every 90-160 steps, for as long as a run lasted:
 by `experiments/budget_sim.py` on the H200 tables, 8% over AR in 420 steps at batch 256 and
@@ -68,6 +76,7 @@ class BudgetConfig:
     decay: float = 0.1  # weight of a new observation in the running estimate of rounds
     retry_share: float = 0.002  # per option, at most this share of the time goes to re-trying it
     retry_weight: float = 0.5  # weight of a retry's observation (the option's estimate is stale)
+    forget: float = 0.05  # per unchosen step, share by which an estimate returns to its long-run mean (0: never)
 
     def __post_init__(self):
         if self.mode not in BUDGETS:
@@ -79,9 +88,10 @@ class BudgetConfig:
         for k, d, n in self.trees:
             if k < 1 or d < 1 or not 1 <= n <= k * d:
                 raise ValueError(f"draft tree {k}x{d}x{n}: need top_k >= 1, depth >= 1, 1 <= total <= top_k*depth")
-        if not 0 < self.decay <= 1 or not 0 < self.retry_weight <= 1 or not 0 <= self.retry_share < 1:
-            raise ValueError(f"need 0 < decay <= 1, 0 < retry_weight <= 1 and 0 <= retry_share < 1, got "
-                             f"{self.decay}, {self.retry_weight}, {self.retry_share}")
+        if (not 0 < self.decay <= 1 or not 0 < self.retry_weight <= 1 or not 0 <= self.retry_share < 1
+                or not 0 <= self.forget <= 1):
+            raise ValueError(f"need 0 < decay <= 1, 0 < retry_weight <= 1, 0 <= retry_share < 1 and 0 <= forget <= 1, "
+                             f"got {self.decay}, {self.retry_weight}, {self.retry_share}, {self.forget}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,11 +147,13 @@ class BudgetState:
     rounds: jnp.ndarray  # [O] running estimate of the batch's draft rounds per action
     runs: jnp.ndarray  # [O] steps each option ran
     idle_ms: jnp.ndarray  # [O] time spent (as the table predicts it) since each option last ran
+    mean_rounds: jnp.ndarray  # [O] mean of the batch's rounds over all of each option's runs (prior until one)
 
 
 def init_state(opts: tuple[Option, ...]) -> BudgetState:
-    return BudgetState(rounds=jnp.asarray([o.prior_rounds for o in opts], jnp.float32),
-                       runs=jnp.zeros((len(opts),), jnp.float32), idle_ms=jnp.zeros((len(opts),), jnp.float32))
+    prior = jnp.asarray([o.prior_rounds for o in opts], jnp.float32)
+    zeros = jnp.zeros((len(opts),), jnp.float32)
+    return BudgetState(rounds=prior, runs=zeros, idle_ms=zeros, mean_rounds=prior)
 
 
 def dominated(costs: Costs, opts: tuple[Option, ...]) -> jnp.ndarray:
@@ -177,13 +189,18 @@ def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], cost
            rounds) -> BudgetState:
     """After option `chosen` ran and the batch needed `rounds` draft rounds: its estimate
     moves towards `rounds` (replaced on its first run, weight `retry_weight` after idling,
-    else `decay`); every other option's idle time grows by this step's predicted time."""
+    else `decay`) and its long-run mean takes the observation in; every other option's
+    estimate returns towards its long-run mean by `forget` (options never run keep their
+    prior), and its idle time grows by this step's predicted time."""
     hit = jnp.arange(len(opts)) == chosen
     weight = jnp.where(state.runs == 0, 1.0, jnp.where(state.idle_ms > 0, cfg.retry_weight, cfg.decay))
     ran = state.rounds + weight * (rounds - state.rounds)
+    idle = state.rounds + cfg.forget * (state.mean_rounds - state.rounds)
+    runs = state.runs + hit
+    mean = jnp.where(hit, state.mean_rounds + (rounds - state.mean_rounds) / jnp.maximum(runs, 1.0), state.mean_rounds)
     step_ms = costs.fixed_ms[chosen] + rounds * costs.round_ms[chosen]
-    return BudgetState(rounds=jnp.where(hit, ran, state.rounds), runs=state.runs + hit,
-                       idle_ms=jnp.where(hit, 0.0, state.idle_ms + step_ms))
+    return BudgetState(rounds=jnp.where(hit, ran, idle), runs=runs,
+                       idle_ms=jnp.where(hit, 0.0, state.idle_ms + step_ms), mean_rounds=mean)
 
 
 def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rounds, steps: int,

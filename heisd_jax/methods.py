@@ -71,7 +71,7 @@ HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bi
                    "recent_candidates": int,
                    "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
                    "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
-                   "budget": str, "budget_trees": str}
+                   "budget": str, "budget_trees": str, "budget_forget": float}
 # Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
 # token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance,
 # and (issue 9) chooses its draft budget per step from measured costs (budget=auto).
@@ -79,7 +79,7 @@ HYBRID_DEFAULTS = {
     "retrieval": {"mode": "retrieval", "retrieval_acceptance": "token_relaxed", "skip": False,
                   "acceptance": "token_relaxed", "relax_bins": 9, "budget": "fixed"},
     "heisd": {"mode": "hybrid", "retrieval_acceptance": "seq_relaxed", "skip": True,
-              "acceptance": "token_relaxed", "relax_bins": 9, "budget": "auto"},
+              "acceptance": "token_relaxed", "relax_bins": 9, "budget": "auto", "recent_candidates": 4},
 }
 BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
 
@@ -138,7 +138,8 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
     return hybrid.HybridConfig(
         spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"],
         relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
-        n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0), max_dist=s.get("max_dist", float("inf")),
+        n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0),
+        max_dist=s.get("max_dist", float("inf")),
         verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
         budget=budget_config(s, settings))
 
@@ -148,8 +149,9 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
     tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
     mode = s.get("budget", "fixed")
     if mode != "auto":
-        if "budget_trees" in given:
-            raise ValueError("budget_trees is only used with budget=auto")
+        for key in ("budget_trees", "budget_forget"):
+            if key in given:
+                raise ValueError(f"{key} is only used with budget=auto")
         return budget.BudgetConfig(mode=mode)
     if "budget_trees" in s:
         trees = budget.parse_trees(s["budget_trees"])
@@ -158,7 +160,7 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
         trees = ((sp.top_k, sp.depth, sp.total_tokens),)
     else:
         trees = budget.DEFAULT_TREES
-    return budget.BudgetConfig(mode="auto", trees=trees)
+    return budget.BudgetConfig(mode="auto", trees=trees, forget=s.get("budget_forget", budget.BudgetConfig.forget))
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:

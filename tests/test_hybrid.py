@@ -171,7 +171,7 @@ def test_config_rejects_bad_settings():
         hybrid.HybridConfig(acceptance="loose")
     with pytest.raises(ValueError, match="switch skip off"):
         hybrid.HybridConfig(acceptance="strict")
-    with pytest.raises(ValueError, match="n_candidates \+ recent_candidates must be <="):
+    with pytest.raises(ValueError, match=r"n_candidates \+ recent_candidates must be <="):
         hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
     with pytest.raises(ValueError, match="tau_on > tau_off"):
         kinematics.BoundaryConfig(tau_on=0.5, tau_off=0.8)
