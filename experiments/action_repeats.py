@@ -1,0 +1,93 @@
+"""How much the target's actions repeat from one control step to the next: what the env's own
+recent actions can offer as retrieval candidates, and what repeating the last action without
+a target pass (a verify-skip on the recent candidate) would cost.
+
+  python -m experiments.action_repeats --suites=all --record_envs=16 --steps=100
+
+Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, --record_envs,
+--steps, --checkpoint), then reports, over steps where the episode runs:
+  - per dimension, the bin distance between consecutive actions;
+  - how often the previous action, as a draft, would be accepted whole by HeiSD's
+    sequence-wise rule (`acceptance.seq_relaxed_length`, default r_max / r_seq) against the
+    action the target emitted (an approximation: in a real verification the target's tokens
+    are conditioned on the draft's prefix, not on its own);
+  - that share after k consecutive whole repeats (are repeats bursty?);
+  - a host simulation of "repeat the last verified action without a target pass once the last
+    n_confirm verified steps each repeated their predecessor, at most k_skip times in a row":
+    the share of skipped steps and how many of them fall outside the rule's tolerance.
+"""
+
+from __future__ import annotations
+
+from absl import app, flags
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax.numpy as jnp
+import numpy as np
+
+from envs import tasks as tasks_lib
+from envs.env import TabletopEnv
+from experiments import bench_methods  # noqa: F401  (its flags: suites, record_envs, steps, checkpoint)
+from heisd_jax import acceptance, checkpoint
+
+FLAGS = flags.FLAGS
+
+
+def whole(draft: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """[...] the draft action [..., 7] (bins) accepted whole against the target's [..., 7]."""
+    cfg = acceptance.SeqRelaxedConfig()
+    return np.asarray(acceptance.seq_relaxed_length(jnp.asarray(draft), jnp.asarray(target), cfg)) == 7
+
+
+def simulate_repeat_skip(bins: np.ndarray, live: np.ndarray, n_confirm: int, k_skip: int) -> tuple[float, float]:
+    """(share of steps skipped, share of skipped steps outside tolerance) over bins [T, B, 7]."""
+    steps = skipped = outside = 0
+    for e in range(bins.shape[1]):
+        last, streak, run = None, 0, 0
+        for t in range(bins.shape[0]):
+            if not live[t, e]:
+                break
+            steps += 1
+            if last is not None and streak >= n_confirm and run < k_skip:
+                skipped, run = skipped + 1, run + 1
+                outside += not whole(last, bins[t, e])
+                continue
+            run = 0
+            if last is not None:
+                streak = streak + 1 if whole(last, bins[t, e]) else 0
+            last = bins[t, e]
+    return skipped / max(steps, 1), outside / max(skipped, 1)
+
+
+def main(argv):
+    del argv
+    env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites))
+    _, actions, done = bench_methods.record(env, FLAGS.record_envs, FLAGS.steps)
+    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    bins = np.asarray(tok.to_bins(np.asarray(actions))).astype(np.int32)  # [T, B, 7]
+    live = ~np.asarray(done)
+    pair = live[1:] & live[:-1]  # [T-1, B]
+    diff = np.abs(bins[1:] - bins[:-1])[pair]  # [n, 7]
+    print(f"{FLAGS.record_envs} envs x {FLAGS.steps} steps of AR ({FLAGS.suites}): {diff.shape[0]} consecutive pairs")
+    print("bin distance to the previous action, per dimension (dx dy dz droll dpitch dyaw gripper):")
+    print(f"  mean   {np.round(diff.mean(0), 2)}")
+    print(f"  median {np.median(diff, 0)}")
+    for r in (0, 3, 9, 15):
+        print(f"  within {r:2d} bins: {np.round((diff <= r).mean(0), 3)}, all 7: {(diff <= r).all(-1).mean():.3f}")
+    rep = whole(bins[:-1], bins[1:]) & pair  # [T-1, B]
+    print(f"previous action accepted whole (seq_relaxed, r_max 15, r_seq 42): {rep[pair].mean():.3f}")
+    for k in (1, 2, 3):
+        cond = pair[k:].copy()
+        for j in range(1, k + 1):
+            cond &= rep[k - j: len(rep) - j]
+        print(f"  after {k} whole repeats in a row: {rep[k:][cond].mean():.3f} ({cond.sum()} steps)")
+    print("repeat the last verified action without a target pass (host simulation):")
+    for n_confirm in (1, 2, 3):
+        for k_skip in (1, 3, 5):
+            share, out = simulate_repeat_skip(bins, live, n_confirm, k_skip)
+            print(f"  n_confirm {n_confirm} k_skip {k_skip}: {share:.3f} of steps skipped, "
+                  f"{out:.3f} of them outside the tolerance")
+
+
+if __name__ == "__main__":
+    app.run(main)
