@@ -59,13 +59,15 @@ flags.DEFINE_string("budget_trees", None, "budget=auto: draft trees to choose fr
                     "separated by '/' (default: the --top_k/--depth/--total_tokens tree if given, else 4x2x8/8x4x32).")
 flags.DEFINE_float("budget_forget", None, "budget=auto: per unchosen step, share by which an option's estimate "
                    "returns to its long-run mean (default 0.05; 0 = never).")
+flags.DEFINE_float("budget_margin", None, "budget=auto: a drafting option must be predicted this much faster than "
+                   "AR to be chosen (default 0.1).")
 flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "VLA methods: parameters and KV cache in this dtype (default float32).")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
                 "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "skip", "k_skip", "tau_on",
-                "tau_off", "budget", "budget_trees", "budget_forget", "dtype")
+                "tau_off", "budget", "budget_trees", "budget_forget", "budget_margin", "dtype")
 
 
 def method_settings() -> dict:

@@ -316,7 +316,8 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
             raise ValueError('budget "auto" needs params["costs"] (cost_model.load_or_calibrate(...).costs()) and a '
                              "state from init_state(batch, key_spec, hcfg)")
         opts = budget_lib.options(hcfg.budget, hcfg.mode)
-        option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval), hcfg.budget.retry_share)
+        option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval), hcfg.budget.retry_share,
+                                   hcfg.budget.margin)
         # Plain AR (option 0) means no retrieval work at all: no query (and so no verify-skip).
         plain_ar = option == 0
         n = hcfg.n_candidates

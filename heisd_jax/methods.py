@@ -71,7 +71,8 @@ HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bi
                    "recent_candidates": int,
                    "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
                    "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
-                   "budget": str, "budget_trees": str, "budget_forget": float}
+                   "budget": str, "budget_trees": str, "budget_forget": float,
+                   "budget_margin": float}
 # Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
 # token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance,
 # and (issue 9) chooses its draft budget per step from measured costs (budget=auto).
@@ -149,7 +150,7 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
     tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
     mode = s.get("budget", "fixed")
     if mode != "auto":
-        for key in ("budget_trees", "budget_forget"):
+        for key in ("budget_trees", "budget_forget", "budget_margin"):
             if key in given:
                 raise ValueError(f"{key} is only used with budget=auto")
         return budget.BudgetConfig(mode=mode)
@@ -160,7 +161,8 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
         trees = ((sp.top_k, sp.depth, sp.total_tokens),)
     else:
         trees = budget.DEFAULT_TREES
-    return budget.BudgetConfig(mode="auto", trees=trees, forget=s.get("budget_forget", budget.BudgetConfig.forget))
+    return budget.BudgetConfig(mode="auto", trees=trees, forget=s.get("budget_forget", budget.BudgetConfig.forget),
+                               margin=s.get("budget_margin", budget.BudgetConfig.margin))
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:

@@ -42,6 +42,20 @@ def test_options_and_chooser_on_synthetic_cost_tables():
     assert int(budget.choose(free, state, OPTS, jnp.asarray(False))) == 3
 
 
+
+def test_a_drafting_option_must_win_by_the_margin():
+    """Predicted 5% faster than AR: chosen without a margin, not with 10%; and an option
+    whose best case wins by less than the margin is never tried."""
+    costs = _costs([1.0, 0.55, 0.55, 0.55, 0.55], [0.0, 0.2, 0.2, 0.2, 0.2])
+    state = dataclasses.replace(budget.init_state(OPTS), rounds=jnp.asarray([0.0, 6.0, 2.0, 6.0, 6.0]))  # 0.95 ms
+    assert int(budget.choose(costs, state, OPTS, jnp.asarray(True), margin=0.0)) == 2
+    assert int(budget.choose(costs, state, OPTS, jnp.asarray(True), margin=0.1)) == 0
+    # best cases (priors 3 / 0 / 2 / 0 rounds): 1.15, 0.55, 0.95, 0.55 ms; x1.1 puts 0.95 above AR
+    np.testing.assert_array_equal(np.asarray(budget.dominated(costs, OPTS, 0.1)), [False, True, False, True, False])
+    np.testing.assert_array_equal(np.asarray(budget.dominated(costs, OPTS, 0.0)), [False, True, False, False, False])
+    with pytest.raises(ValueError, match="margin"):
+        budget.BudgetConfig(mode="auto", margin=1.0)
+
 def test_running_estimates():
     cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, retry_weight=0.75)
     costs = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.1] * 5)
@@ -65,7 +79,7 @@ def test_a_passing_slow_phase_is_forgotten():
     costs = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.0, 0.25, 0.25, 0.25, 0.25])  # break-even at 2 rounds
 
     def run(forget):
-        cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, retry_share=0.002, forget=forget)
+        cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, retry_share=0.002, forget=forget, margin=0.0)
         state = budget.init_state(OPTS)
         for r in [1.0] * 20 + [4.0] * 3:  # option 4 runs a long good stretch, then three slow steps
             state = budget.update(cfg, state, OPTS, costs, 4, r)
