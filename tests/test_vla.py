@@ -46,12 +46,15 @@ def test_ar_decoding_with_cache_matches_full_forward_logits(model):
     p = CFG.prompt_len
     # Prefill logits == uncached logits at the last prompt position.
     lg, _, cache = f["prefill"](params, obs)
-    np.testing.assert_allclose(lg, full[:, p - 1], atol=1e-4)
+    # Logits reach |20| in float32 and the cached and uncached passes sum in different orders:
+    # they differ by up to 2e-4 (jax 0.10.2 on a 2-core CPU); a cache bug is off by O(1).
+    tol = 5e-4
+    np.testing.assert_allclose(lg, full[:, p - 1], atol=tol)
     # Each cached single-token decode == uncached logits at that position.
     for i in range(6):
         lg, _, blk = f["decode"](params, cache, toks[:, i:i + 1], jnp.zeros((B, 1), jnp.int32), jnp.ones((B, 1, 1), bool))
         cache = vla.commit(cache, blk, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
-        np.testing.assert_allclose(lg[:, 0], full[:, p + i], atol=1e-4)
+        np.testing.assert_allclose(lg[:, 0], full[:, p + i], atol=tol)
     # Greedy tokens are what the full forward predicts.
     pred = jnp.argmax(vla.action_logits(CFG, full[:, p - 1:p + 6]), -1) + CFG.first_action_id
     np.testing.assert_array_equal(pred, toks)
