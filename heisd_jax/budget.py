@@ -32,9 +32,10 @@ option then stayed unchosen until its retry came due, about regret / retry_share
 it, an option whose long run beats AR comes back after about 1 / forget steps; one whose
 long run loses stays where it is (the mean is no better than its estimate).
 A margin: a drafting option is chosen only if predicted `margin` (10%) faster than AR. The
-table's own error is of that size: at batch 16 on an H200 it predicted the 4x2x8+retrieval
-option 7% faster than AR while the replay measured it 7% slower, and two calibrations of the
-same batch-1 table differed by 12% on AR's decode (BENCHMARKS.md, issue 9).
+table's own error is of that size: at batch 16 on an H200, without a margin, the chooser
+picked drafting on about half the steps although drafting measured 7-8% slower than AR in
+the same replays, and two calibrations of AR's decode at batch 1 differed by 12%
+(BENCHMARKS.md, issue 9). The price: at batch 1 AR runs on a quarter of the steps.
 (Until this design, unchosen estimates drifted back to the optimistic prior at 1% per step,
 which re-tried every losing option about every 90-160 steps, for as long as a run lasted:
 by `experiments/budget_sim.py` on the H200 tables, 8% over AR in 420 steps at batch 256 and
