@@ -23,7 +23,6 @@ drift (and its success rate) is not captured: see experiments.sweep for that.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 from pathlib import Path
 
@@ -38,7 +37,7 @@ from flax import struct
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, cost_model, methods, retrieval, vla, vla_policy
+from heisd_jax import checkpoint, cost_model, methods, results_io, retrieval, vla, vla_policy
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
@@ -252,10 +251,9 @@ def main(argv):
 
 
 def write(rows, query_ms):
-    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
-                                           "record_method": FLAGS.record_method, "suites": FLAGS.suites,
-                                           "query_ms": query_ms, "rows": rows}, indent=1))
+    results_io.write_json_atomic(FLAGS.out, {"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
+                                             "record_method": FLAGS.record_method, "suites": FLAGS.suites,
+                                             "query_ms": query_ms, "rows": rows})
 
 
 if __name__ == "__main__":
