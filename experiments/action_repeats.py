@@ -27,7 +27,7 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from experiments import bench_methods  # noqa: F401  (its flags: suites, record_envs, steps, checkpoint)
+from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint
 from heisd_jax import acceptance, checkpoint
 
 FLAGS = flags.FLAGS

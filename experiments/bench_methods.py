@@ -23,6 +23,7 @@ drift (and its success rate) is not captured: see experiments.sweep for that.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 
@@ -56,6 +57,8 @@ flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE), "budget=auto: c
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_string("out", "", "JSON output path.")
 flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
+flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --out JSON files (e.g. two runs of "
+                  "other batch sizes) into --plot.")
 
 
 @struct.dataclass
@@ -162,6 +165,14 @@ def replay_fn(policy):
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
+    if FLAGS.replot:
+        if not FLAGS.plot:
+            raise app.UsageError("--replot needs --plot (the PNG to write)")
+        missing = [f for f in FLAGS.replot if not Path(f).is_file()]
+        if missing:
+            raise app.UsageError(f"--replot: no such file(s): {missing}")
+        plot([r for f in FLAGS.replot for r in json.loads(Path(f).read_text())["rows"]], FLAGS.plot)
+        return
     try:
         method_list = methods.parse_method_list(FLAGS.methods)
         task_list = tasks_lib.get_tasks(FLAGS.suites)
