@@ -48,6 +48,9 @@ flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions v
 flags.DEFINE_integer("recent_candidates", None, "retrieval/heisd: the env's own last executed actions verified as "
                      "further candidates each retrieval step (default: heisd 4, retrieval 0; our design).")
 flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
+flags.DEFINE_enum("continuation", None, list(hybrid.CONTINUATION),
+                  "retrieval/heisd with budget=fixed: what decodes the rest of an action after the prefill and its "
+                  "accepted candidate prefix: drafter rounds (default) or single-token AR passes (no drafter).")
 flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict acceptance).")
 flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
 flags.DEFINE_float("tau_on", None, "Boundary: metric above which the drafter mode starts (default: the calibration).")
@@ -66,7 +69,7 @@ flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "skip", "k_skip", "tau_on",
+                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "continuation", "skip", "k_skip", "tau_on",
                 "tau_off", "budget", "budget_trees", "budget_forget", "budget_margin", "dtype")
 
 

@@ -103,14 +103,13 @@ class BudgetConfig:
 
 @dataclasses.dataclass(frozen=True)
 class Option:
-    tree: tuple[int, int, int] | None  # None: plain AR
+    tree: tuple[int, int, int] | None  # None: no drafter (AR passes after the prefill)
     retrieval: bool = False  # verify the retrieved candidates (rows in retrieval mode)
 
     @property
     def name(self) -> str:
-        if self.tree is None:
-            return "ar"
-        return "x".join(map(str, self.tree)) + ("+retrieval" if self.retrieval else "")
+        base = "ar" if self.tree is None else "x".join(map(str, self.tree))
+        return base + ("+retrieval" if self.retrieval else "")
 
     @property
     def prior_rounds(self) -> float:
@@ -120,9 +119,12 @@ class Option:
 
 
 def options(cfg: BudgetConfig, mode: str) -> tuple[Option, ...]:
-    """AR (always option 0), then per tree: drafter only (unless mode is 'retrieval'), with
-    retrieval (unless mode is 'drafter'). `mode`: the HybridConfig's (hybrid, retrieval, drafter)."""
+    """AR (always option 0); AR after the candidates verified in the prefill (unless mode is
+    'drafter'); then per tree: drafter only (unless mode is 'retrieval'), with retrieval
+    (unless mode is 'drafter'). `mode`: the HybridConfig's (hybrid, retrieval, drafter)."""
     out = [Option(None)]
+    if mode != "drafter":
+        out.append(Option(None, True))
     for tree in cfg.trees:
         if mode != "retrieval":
             out.append(Option(tree, False))
@@ -138,8 +140,11 @@ def tree_spec(spec: spec_decode.SpecConfig, tree: tuple[int, int, int]) -> spec_
 
 
 def branch_index(opts: tuple[Option, ...], trees: tuple) -> np.ndarray:
-    """Per option, its compiled branch: 0 = AR, 1 + i = tree i (shared by both retrieval flags)."""
-    return np.asarray([0 if o.tree is None else 1 + trees.index(o.tree) for o in opts], np.int32)
+    """Per option, its compiled branch: 0 = AR, then 1 = AR after verified candidates (if an
+    option), then one per tree (shared by both retrieval flags)."""
+    first_tree = 2 if Option(None, True) in opts else 1
+    return np.asarray([int(o.retrieval) if o.tree is None else first_tree + trees.index(o.tree) for o in opts],
+                      np.int32)
 
 
 @struct.dataclass

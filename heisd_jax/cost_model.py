@@ -197,37 +197,50 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     ar_ms = whole_ms(ar, tp, obs)
     rows = {"ar": (ar_ms, 0.0, ar_ms, 0.0)}  # option -> (fixed, round, whole decode, its rounds)
     pieces["round_alone_ms"], pieces["zero_round_ms"] = {}, {}
+
+    def decoder(hc):
+        def dec(p, obs, cand, valid, use, skip):
+            return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
+        rounds = jax.jit(lambda *a: jnp.max(dec(*a)[1]["rounds"]))
+
+        def timed(use, inputs):
+            t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs])
+            r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in inputs])
+            return t, r
+        return timed
+
+    def in_context(timed, name, round_ms):
+        """Fixed part and round cost of a retrieval option from its whole decodes: the
+        zero-round anchor (candidates accepted whole) and the slope to random candidates."""
+        (t0,), (r0,) = timed(jnp.ones((batch,), bool), [(obs, exact)])
+        pieces["zero_round_ms"][name] = float(t0)
+        t, r = map(np.median, timed(jnp.ones((batch,), bool), draws))
+        if r - r0 >= 1 and t > t0:
+            round_ms = float((t - t0) / (r - r0))
+        return float(t0 - r0 * round_ms), round_ms, float(t), float(r)
+
+    ar_retrieval = budget.Option(None, True)
+    if ar_retrieval in opts:  # the candidates verified in the prefill, then AR passes (no drafter)
+        fixed, round_ms, t, r = in_context(decoder(dataclasses.replace(hcfg, continuation="ar")), ar_retrieval.name,
+                                           pieces["cached_ms"]["1"])
+        rows[ar_retrieval.name] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms, t, r)
     for tree in dict.fromkeys(o.tree for o in opts if o.tree is not None):
         spec = budget.tree_spec(hcfg.spec, tree)
-        hc = dataclasses.replace(hcfg, spec=spec)
-
-        def dec(p, obs, cand, valid, use, skip, hc=hc):
-            return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
-        rounds = jax.jit(lambda *a, dec=dec: jnp.max(dec(*a)[1]["rounds"]))
+        timed = decoder(dataclasses.replace(hcfg, spec=spec, continuation="drafter"))
         s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
             tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
         name = budget.Option(tree, False).name
         # The whole state out (not just the tokens), or XLA drops the cache commit.
         round_ms = pieces["round_alone_ms"][name] = ms(
             lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s), tp, dp, s0)
-
-        def timed(use, inputs, dec=dec, rounds=rounds):
-            t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs])
-            r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in inputs])
-            return t, r
         mine = [o for o in opts if o.tree == tree]
-        random = {o.retrieval: timed(jnp.full((batch,), o.retrieval), draws) for o in mine}
-        if True in random:  # the round's cost in context: slope from the zero-round anchor
-            (t0,), (r0,) = timed(jnp.ones((batch,), bool), [(obs, exact)])
-            pieces["zero_round_ms"][name + "+retrieval"] = float(t0)
-            t, r = map(np.median, random[True])
-            if r - r0 >= 1 and t > t0:
-                round_ms = float((t - t0) / (r - r0))
-        for o in mine:
-            t, r = random[o.retrieval]
-            fixed = float(t0 - r0 * round_ms) if o.retrieval else float(np.median(t - r * round_ms))
-            rows[o.name] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms,
-                            float(np.median(t)), float(np.median(r)))
+        if any(o.retrieval for o in mine):  # the round's cost in context: slope from the zero-round anchor
+            fixed, round_ms, t, r = in_context(timed, name + "+retrieval", round_ms)
+            rows[name + "+retrieval"] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms, t, r)
+        if any(not o.retrieval for o in mine):
+            t, r = timed(jnp.zeros((batch,), bool), draws)
+            rows[name] = (max(float(np.median(t - r * round_ms)), pieces["prefill_ms"]["0"]) + query_ms, round_ms,
+                          float(np.median(t)), float(np.median(r)))
     fixed, rnd, whole, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,

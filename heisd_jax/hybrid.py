@@ -42,6 +42,7 @@ from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 MODES = ("hybrid", "retrieval", "drafter")  # hybrid: kinematic boundary; else every step in that mode
 RETRIEVAL_ACCEPTANCE = ("strict", "token_relaxed", "seq_relaxed")
 VERIFY = ("prefill", "separate")
+CONTINUATION = ("drafter", "ar")  # what decodes the rest of an action after the prefill (and its accepted prefix)
 
 
 def _check(name, value, valid):
@@ -60,6 +61,7 @@ class HybridConfig:
     recent_candidates: int = 0  # the env's own last executed actions, newest first (our design)
     max_dist: float = float("inf")  # candidates with a squared key distance above this are invalid
     verify: str = "prefill"
+    continuation: str = "drafter"  # "ar": single-token target passes, no drafter at all (budget option "ar+retrieval")
     skip: rules.SkipConfig = rules.SkipConfig()
     metric: kinematics.MetricConfig = kinematics.MetricConfig()
     boundary: kinematics.BoundaryConfig = kinematics.BoundaryConfig()
@@ -69,6 +71,7 @@ class HybridConfig:
         _check("mode", self.mode, MODES)
         _check("retrieval acceptance", self.acceptance, RETRIEVAL_ACCEPTANCE)
         _check("verify", self.verify, VERIFY)
+        _check("continuation", self.continuation, CONTINUATION)
         if self.n_candidates < 1:
             raise ValueError(f"n_candidates must be >= 1, got {self.n_candidates}")
         if self.recent_candidates < 0:
@@ -90,7 +93,8 @@ class HybridConfig:
     def lossless(self) -> bool:
         """Tokens identical to greedy AR decoding."""
         uses_retrieval = self.mode != "drafter"
-        return self.spec.acceptance == "strict" and (
+        uses_drafter = self.continuation == "drafter" or self.budget.mode == "auto"
+        return (not uses_drafter or self.spec.acceptance == "strict") and (
             not uses_retrieval or (self.acceptance == "strict" and not self.skip.enabled))
 
     def check_fits(self, cfg: vla.VLAConfig):
@@ -182,6 +186,8 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         acc = jnp.max(length, 1)  # [B] 0..7
         best_cand = jnp.take_along_axis(cand, best[:, None, None], 1)[:, 0]  # [B, 7]
         best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
+        if hcfg.continuation == "ar":
+            return _continue_ar(tp, cfg, cache, block_kv, best, best_cand, best_target, acc, passes, skip, cand[:, 0])
 
         first = jnp.where(acc >= 1, best_cand[:, 0], greedy1 + first_id)
         s0 = spec_decode.start(tp, dp, cfg, logits, hidden, x, cache, obs, first=first,
@@ -220,6 +226,26 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
     return tokens, stats
 
 
+def _continue_ar(tp, cfg: vla.VLAConfig, cache: vla.KVCache, block_kv: vla.Block, best, best_cand, best_target, acc,
+                 passes, skip, top_candidate):
+    """`decode`'s tail with `continuation="ar"`: a row keeps its best candidate's accepted
+    tokens 1..acc and the target's token acc+1 (from the same pass), commits the accepted
+    ones into the cache and decodes the rest by single-token target passes; no drafter."""
+    c = ACTION_DIM - 1
+    i = jnp.arange(ACTION_DIM)[None]
+    bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
+    out = jnp.where(i < acc[:, None], best_cand, jnp.where(i == acc[:, None], bonus, 0))
+    chain = best[:, None] * c + jnp.arange(c)[None]  # block offsets of the best chain's nodes
+    cache = vla.commit(cache, block_kv, chain, jnp.minimum(acc, c))
+    n_out = jnp.where(skip, ACTION_DIM, jnp.minimum(acc + 1, ACTION_DIM))  # skipped rows are done
+    out, steps = vla.ar_continue(tp, cfg, cache, out, n_out)
+    ran = (~skip).astype(jnp.float32)
+    steps = steps.astype(jnp.float32)
+    return jnp.where(skip[:, None], top_candidate, out), {
+        "target_passes": (passes + steps) * ran, "drafter_passes": jnp.zeros_like(ran), "rounds": steps * ran,
+        "retrieval_accepted": acc.astype(jnp.float32)}
+
+
 def decode_ar(params, cfg: vla.VLAConfig, obs: vla.Observation, cand: jnp.ndarray, skip: jnp.ndarray):
     """`decode`'s contract with plain AR for the rows that do not skip (no drafting at all)."""
     b = cand.shape[0]
@@ -246,11 +272,14 @@ def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_l
     trees = hcfg.budget.trees
     wants_retrieval = jnp.asarray([opt.retrieval for opt in opts])[option]
 
-    def tree_branch(tree):
-        hc = dataclasses.replace(hcfg, spec=budget_lib.tree_spec(hcfg.spec, tree))
+    def branch(**change):
+        hc = dataclasses.replace(hcfg, **change)
         return lambda _: decode(params, cfg, hc, obs, cand, cand_valid, use_retrieval & wants_retrieval, skip)
 
-    branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)] + [tree_branch(t) for t in trees]
+    branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)]
+    if any(o.tree is None and o.retrieval for o in opts):
+        branches.append(branch(continuation="ar"))
+    branches += [branch(spec=budget_lib.tree_spec(hcfg.spec, t), continuation="drafter") for t in trees]
     tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[option], branches, None)
     bstate = budget_lib.update(hcfg.budget, bstate, opts, params["costs"], option, jnp.max(stats["rounds"]))
     b = cand.shape[0]

@@ -69,7 +69,7 @@ COMMON_SETTINGS = {"dtype": str}  # every VLA method
 SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}
 HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bins": int, "n_candidates": int,
                    "recent_candidates": int,
-                   "max_dist": float, "verify": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
+                   "max_dist": float, "verify": str, "continuation": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
                    "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
                    "budget": str, "budget_trees": str, "budget_forget": float,
                    "budget_margin": float}
@@ -141,7 +141,7 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
         relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
         n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0),
         max_dist=s.get("max_dist", float("inf")),
-        verify=s.get("verify", "prefill"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
+        verify=s.get("verify", "prefill"), continuation=s.get("continuation", "drafter"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
         budget=budget_config(s, settings))
 
 
@@ -149,6 +149,9 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
     """budget=auto chooses per step among AR and the trees of `budget_trees` (default: the
     tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
     mode = s.get("budget", "fixed")
+    if mode == "auto" and "continuation" in given:
+        raise ValueError("continuation is only used with budget=fixed (budget=auto chooses per step between AR after "
+                         "the verified candidates, option ar+retrieval, and the drafter trees)")
     if mode != "auto":
         for key in ("budget_trees", "budget_forget", "budget_margin"):
             if key in given:

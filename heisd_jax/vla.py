@@ -382,3 +382,29 @@ def ar_decode(params, cfg: VLAConfig, obs: Observation):
 
     _, rest = jax.lax.scan(step, (cache, first), None, length=ACTION_DIM - 1)
     return jnp.concatenate([first[:, None], rest.T], 1), ACTION_DIM
+
+
+def ar_continue(params, cfg: VLAConfig, cache: KVCache, out: jnp.ndarray, n_out: jnp.ndarray):
+    """Greedy AR decoding of the rest of a partly decoded action: out [B, 7] token ids
+    (valid j < n_out [B], 1..7), the cache holding the prompt and out[:, :n_out - 1] (the
+    last emitted token is not fed yet). One single-token pass per step until every row
+    holds 7 tokens (a `lax.while_loop`: the batch runs until its longest row is done; rows
+    already done are masked). Returns out [B, 7] and the passes each row needed [B]."""
+    b = out.shape[0]
+    zero = jnp.zeros((b, 1), jnp.int32)
+    causal1 = jnp.ones((b, 1, 1), bool)
+    rows = jnp.arange(b)
+
+    def body(carry):
+        cache, out, n_out, passes = carry
+        active = n_out < ACTION_DIM
+        last = out[rows, jnp.clip(n_out - 1, 0, ACTION_DIM - 1)]
+        lg, _, blk = decode(params, cfg, cache, last[:, None], zero, causal1)
+        cache = commit(cache, blk, zero, active.astype(jnp.int32))
+        nxt = jnp.argmax(action_logits(cfg, lg[:, 0]), -1) + cfg.first_action_id
+        out = out.at[rows, jnp.where(active, n_out, ACTION_DIM)].set(nxt, mode="drop")
+        return cache, out, n_out + active, passes + active
+
+    _, out, _, passes = jax.lax.while_loop(lambda c: jnp.any(c[2] < ACTION_DIM), body,
+                                           (cache, out, n_out.astype(jnp.int32), jnp.zeros((b,), jnp.int32)))
+    return out, passes

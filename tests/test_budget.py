@@ -19,7 +19,8 @@ TREES = ((2, 1, 2), (2, 2, 4))
 AUTO = hybrid.HybridConfig(spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4), mode="hybrid", acceptance="strict",
                            n_candidates=3, skip=acceptance.SkipConfig(enabled=False),
                            budget=budget.BudgetConfig(mode="auto", trees=TREES))
-OPTS = budget.options(AUTO.budget, AUTO.mode)
+ALL_OPTS = budget.options(AUTO.budget, AUTO.mode)
+OPTS = tuple(o for o in ALL_OPTS if o != budget.Option(None, True))  # the chooser's tests: AR and the trees
 
 
 def _costs(fixed, rounds):
@@ -27,8 +28,13 @@ def _costs(fixed, rounds):
 
 
 def test_options_and_chooser_on_synthetic_cost_tables():
-    assert [o.name for o in OPTS] == ["ar", "2x1x2", "2x1x2+retrieval", "2x2x4", "2x2x4+retrieval"]
+    assert [o.name for o in ALL_OPTS] == ["ar", "ar+retrieval", "2x1x2", "2x1x2+retrieval", "2x2x4",
+                                          "2x2x4+retrieval"]
     assert [o.name for o in budget.options(AUTO.budget, "drafter")] == ["ar", "2x1x2", "2x2x4"]
+    assert [o.name for o in budget.options(AUTO.budget, "retrieval")] == ["ar", "ar+retrieval", "2x1x2+retrieval",
+                                                                        "2x2x4+retrieval"]
+    np.testing.assert_array_equal(budget.branch_index(ALL_OPTS, TREES), [0, 1, 2, 2, 3, 3])
+    np.testing.assert_array_equal(budget.branch_index(OPTS, TREES), [0, 1, 1, 2, 2])
     state = budget.init_state(OPTS)
     np.testing.assert_array_equal(np.asarray(state.rounds), [0, 3, 0, 2, 0])  # optimistic priors
     # Drafting cannot win: every tree's fixed part alone costs more than AR.
@@ -157,16 +163,23 @@ def test_strict_equals_ar_under_every_budget_option(setup, verify):
     use = jnp.array([True, True, True, False, True, True])  # rows accept 7, 0, 3, -, 1, 7 retrieval tokens
     valid = jnp.ones((B, 3), bool)
     skip = jnp.zeros((B,), bool)
-    p = dict(params, costs=_costs([1.0] * 5, [0.1] * 5))
-    for i, opt in enumerate(OPTS):
-        tokens, stats, bstate = _auto(p, CFG, hcfg, budget.init_state(OPTS), jnp.asarray(i), obs, cand, valid,
+    n = len(ALL_OPTS)
+    p = dict(params, costs=_costs([1.0] * n, [0.1] * n))
+    for i, opt in enumerate(ALL_OPTS):
+        tokens, stats, bstate = _auto(p, CFG, hcfg, budget.init_state(ALL_OPTS), jnp.asarray(i), obs, cand, valid,
                                       use, skip)
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens, err_msg=opt.name)
         assert np.all(np.asarray(stats[f"budget_{opt.name}"]) == 1.0)
         assert float(bstate.runs[i]) == 1 and float(jnp.sum(bstate.runs)) == 1
         passes = np.asarray(stats["target_passes"])
-        if opt.tree is None:
+        if opt.tree is None and not opt.retrieval:
             np.testing.assert_array_equal(passes, 7)
+        if opt.tree is None and opt.retrieval:  # one pass per token the candidates did not give, no drafter
+            acc = np.asarray(stats["retrieval_accepted"])
+            np.testing.assert_array_equal(passes, 1 + (verify == "separate") * np.asarray(use)
+                                          + np.maximum(6 - acc, 0))
+            np.testing.assert_array_equal(np.asarray(stats["drafter_passes"]), 0)
+            assert float(bstate.rounds[i]) == np.max(np.maximum(6 - acc, 0))  # the batch's AR steps
         verified = np.asarray(stats["retrieval_verified"])
         np.testing.assert_array_equal(verified, np.asarray(use) if opt.retrieval else 0)
 
@@ -182,7 +195,7 @@ def test_step_with_auto_budget_keeps_its_state(setup):
     keys = retrieval.make_keys(spec, tok, state.prev_actions, obs.proprio)
     store = retrieval.Datastore(keys=keys, sq_norms=(keys * keys).sum(-1), tokens=jnp.asarray(ar_tokens),
                                 task=jnp.arange(B))
-    p = dict(params, store=store, costs=_costs([1.0, 2.0, 0.5, 2.0, 2.0], [0.1] * 5))
+    p = dict(params, store=store, costs=_costs([1.0, 2.0, 2.0, 0.5, 2.0, 2.0], [0.1] * 6))
     kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
                             gripper_vel=jnp.zeros((B,)))
     run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
@@ -190,8 +203,8 @@ def test_step_with_auto_budget_keeps_its_state(setup):
         _, tokens, state, stats = run(p, CFG, AUTO, spec, tok, state, obs, kin, jnp.arange(B))
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
     # Every row in the retrieval mode, candidates exact: the retrieval option ran twice, 0 rounds.
-    np.testing.assert_array_equal(np.asarray(state.budget.runs), [0, 0, 2, 0, 0])
-    assert float(state.budget.rounds[2]) == 0.0
+    np.testing.assert_array_equal(np.asarray(state.budget.runs), [0, 0, 0, 2, 0, 0])
+    assert float(state.budget.rounds[3]) == 0.0
     with pytest.raises(ValueError, match='needs params\\["costs"\\]'):
         hybrid.step(params | {"store": store}, CFG, AUTO, spec, tok, hybrid.init_state(B, spec, AUTO), obs, kin,
                     jnp.arange(B))
@@ -202,11 +215,13 @@ def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
     logs = []
     one = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=TREES[:1]))
     table = cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
-    assert table.options == ["ar", "2x1x2", "2x1x2+retrieval"] and len(table.fixed_ms) == 3
+    assert table.options == ["ar", "ar+retrieval", "2x1x2", "2x1x2+retrieval"] and len(table.fixed_ms) == 4
     assert all(np.isfinite(v) and v >= 0 for v in table.fixed_ms + table.round_ms + table.decode_ms)
     assert table.round_ms[0] == 0 and table.fixed_ms[0] == table.decode_ms[0] > 0  # AR: no rounds
-    # Both options of a tree share its round cost in context (slope from the zero-round anchor).
-    assert table.round_ms[1] == table.round_ms[2] > 0 and set(table.pieces["zero_round_ms"]) == {"2x1x2+retrieval"}
+    # Both options of a tree share its round cost in context (slope from the zero-round anchor);
+    # AR after the verified candidates has its own (a single-token pass).
+    assert table.round_ms[2] == table.round_ms[3] > 0 and table.round_ms[1] > 0
+    assert set(table.pieces["zero_round_ms"]) == {"ar+retrieval", "2x1x2+retrieval"}
     assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0", "6", "18"}
     assert table.key["batch"] == 2 and table.ceiling > 0 and "ceiling AR / prefill" in table.report()
     files = list(tmp_path.glob("costs_*.json"))
@@ -256,6 +271,11 @@ def test_bad_budget_settings_are_refused():
     assert methods.hybrid_config("heisd", s).budget.trees == ((4, 2, 8),)  # the given tree bounds the budget
     assert methods.hybrid_config("heisd", {}).budget == budget.BudgetConfig(mode="auto")
     assert methods.hybrid_config("retrieval", {}).budget.mode == "fixed"
+    with pytest.raises(ValueError, match="only used with budget=fixed"):
+        methods.check_settings("heisd", {"continuation": "ar"})  # auto chooses it per step
+    with pytest.raises(ValueError, match="valid: drafter, ar"):
+        methods.check_settings("heisd", {"budget": "fixed", "continuation": "eagle"})
+    assert methods.hybrid_config("heisd", {"budget": "fixed", "continuation": "ar"}).continuation == "ar"
 
 
 def test_bfloat16_strict_equals_bfloat16_ar(setup):

@@ -58,11 +58,11 @@ def test_prefill_with_block_equals_prefill_then_decode(setup):
     np.testing.assert_array_equal(np.asarray(cache.key_mask), np.asarray(cache2.key_mask))
 
 
-@pytest.mark.parametrize("verify", ["prefill", "separate"])
-def test_strict_hybrid_equals_ar_token_for_token(setup, verify):
+@pytest.mark.parametrize("verify,continuation", [("prefill", "drafter"), ("separate", "drafter"), ("prefill", "ar")])
+def test_strict_hybrid_equals_ar_token_for_token(setup, verify, continuation):
     params, obs, ar_tokens = setup
     cand, cuts = _candidates(ar_tokens, np.random.default_rng(1))
-    hcfg = dataclasses.replace(STRICT, verify=verify)
+    hcfg = dataclasses.replace(STRICT, verify=verify, continuation=continuation)
     assert hcfg.lossless
     use = jnp.array([True, True, True, True, False, True])
     valid = jnp.ones((B, 3), bool).at[5, 1].set(False)  # row 5's exact candidate is masked out
@@ -74,6 +74,9 @@ def test_strict_hybrid_equals_ar_token_for_token(setup, verify):
     passes = np.asarray(stats["target_passes"])
     assert passes[0] == (1 if verify == "prefill" else 2)  # a whole action verified in one pass
     assert np.all(passes <= 7 + (verify == "separate"))
+    if continuation == "ar":  # one pass per token the candidates did not give; the drafter never runs
+        np.testing.assert_array_equal(passes, 1 + np.maximum(6 - acc, 0))
+        np.testing.assert_array_equal(np.asarray(stats["drafter_passes"]), 0)
 
 
 def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(setup):
