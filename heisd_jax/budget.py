@@ -3,9 +3,12 @@ minimises the expected time per action, from a cost table measured on the device
 (`heisd_jax.cost_model`) and running estimates of the acceptance seen so far. Our design;
 HeiSD and Spec-VLA use one fixed budget.
 
-Options (`options`): plain AR (no drafting at all) and, for every draft tree of the grid
-(`BudgetConfig.trees`), drafter SD from the prefill alone, or with the retrieved candidates
-verified inside the prefill for the rows in retrieval mode (HeiSD). The choice is
+Options (`options`): plain AR (no drafting at all); `ar+retrieval`, the candidates verified
+inside the prefill for the rows in retrieval mode and the rest of each action decoded by
+single-token target passes (`HybridConfig.continuation="ar"`: no drafter at all; its
+"rounds" are those passes); and, for every draft tree of the grid (`BudgetConfig.trees`),
+drafter SD from the prefill alone, or after the candidates verified inside the prefill
+(HeiSD). The choice is
 batch-wide, a `lax.switch` over compiled branches: the rows of a batch advance in lockstep,
 so a batch pays its prefill plus its *largest* number of draft rounds, whatever the others.
 

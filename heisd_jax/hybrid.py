@@ -20,7 +20,11 @@ Per env and control step (`step`):
      A row's best candidate keeps its accepted prefix under the retrieval acceptance rule
      (`strict`, `token_relaxed`, or HeiSD's sequence-wise `seq_relaxed`); the target's
      greedy token follows as the bonus; the rest of the action is decoded by drafter rounds
-     (Spec-VLA), as for drafter-mode rows, which start from the prefill alone.
+     (Spec-VLA), as for drafter-mode rows, which start from the prefill alone, or, with
+     `continuation="ar"` (our design), by single-token target passes with no drafter at
+     all: on an H200 at batch 1 a 4x2x8 round costs 0.46 ms and gains ~1.7 tokens, about
+     what 1.7 AR passes (0.25 ms each) cost, while the drafter's prompt pass and hand-over
+     add to every action (BENCHMARKS.md, issue 9).
 Rows that need no target pass (skipped) are masked, and the target call itself is skipped
 (`lax.cond`) when no row in the batch needs it.
 
