@@ -44,7 +44,8 @@ flags.DEFINE_enum("mode", None, list(hybrid.MODES), "heisd: hybrid (kinematic bo
 flags.DEFINE_enum("retrieval_acceptance", None, list(hybrid.RETRIEVAL_ACCEPTANCE),
                   "retrieval/heisd: acceptance rule for retrieval drafts (heisd default seq_relaxed).")
 flags.DEFINE_integer("retrieval_relax_bins", None, "token_relaxed retrieval acceptance: bins (default 9).")
-flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4).")
+flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4; 0: no "
+                     "datastore query, the recent actions alone, verify-skip off).")
 flags.DEFINE_integer("recent_candidates", None, "retrieval/heisd: the env's own last executed actions verified as "
                      "further candidates each retrieval step (default: heisd 4, retrieval 0; our design).")
 flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
@@ -69,8 +70,8 @@ flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "continuation", "skip", "k_skip", "tau_on",
-                "tau_off", "budget", "budget_trees", "budget_forget", "budget_margin", "dtype")
+                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "continuation", "skip", "k_skip",
+                "tau_on", "tau_off", "budget", "budget_trees", "budget_forget", "budget_margin", "dtype")
 
 
 def method_settings() -> dict:

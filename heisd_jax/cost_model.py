@@ -182,7 +182,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
             lambda dp, c, e, p, m: drafter.step(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
 
     query_ms = 0.0  # every option but plain AR queries the datastore first
-    if "store" in params:
+    if "store" in params and hcfg.n_candidates:
         keys = jnp.zeros((batch, params["store"].keys.shape[1]), jnp.float32)
         query_ms = ms(lambda st, k: retrieval.query(st, k, jnp.zeros((batch,), jnp.int32), hcfg.n_candidates)[1], params["store"], keys)
     pieces["query_ms"] = query_ms

@@ -7,7 +7,8 @@ Per env and control step (`step`):
      manipulation). Published: a kinematic metric decides; the formula is our design
      (`heisd_jax.kinematics`).
   2. retrieval: the env's key (recent actions, proprio) queries the datastore for
-     `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`); the env's own
+     `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`; 0: no query,
+     the recent actions alone, and no verify-skip); the env's own
      last `recent_candidates` executed actions join them as further candidates (our design:
      the target's actions repeat from step to step far more often than the datastore's
      expert actions match them; BENCHMARKS.md, issue 9). The datastore's candidates come
@@ -76,10 +77,14 @@ class HybridConfig:
         _check("retrieval acceptance", self.acceptance, RETRIEVAL_ACCEPTANCE)
         _check("verify", self.verify, VERIFY)
         _check("continuation", self.continuation, CONTINUATION)
-        if self.n_candidates < 1:
-            raise ValueError(f"n_candidates must be >= 1, got {self.n_candidates}")
-        if self.recent_candidates < 0:
-            raise ValueError(f"recent_candidates must be >= 0, got {self.recent_candidates}")
+        if self.n_candidates < 0 or self.recent_candidates < 0:
+            raise ValueError(f"n_candidates and recent_candidates must be >= 0, got {self.n_candidates}, "
+                             f"{self.recent_candidates}")
+        if self.n_candidates + self.recent_candidates < 1:
+            raise ValueError("nothing to verify: n_candidates (retrieved) + recent_candidates must be >= 1")
+        if self.n_candidates == 0 and self.skip.enabled and self.mode != "drafter":
+            raise ValueError("verify-skip executes the datastore's top candidate: with n_candidates=0 (recent actions "
+                             "only), switch skip off")
         if not 0 <= self.relax_bins < 256:
             raise ValueError(f"relax_bins must be in 0..255, got {self.relax_bins}")
         if self.max_dist <= 0:
@@ -344,6 +349,11 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     keys = retrieval.make_keys(key_spec, tok, state.prev_actions, obs.proprio)
     bstate = state.budget
     auto = hcfg.budget.mode == "auto"
+    n = hcfg.n_candidates
+    no_query = lambda _: (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32),  # noqa: E731
+                          jnp.full((b, n), jnp.inf, jnp.float32), jnp.zeros((b, n), bool))
+    def query(_):
+        return no_query(None) if n == 0 else retrieval.query(params["store"], keys, task, n, hcfg.max_dist)
     if auto:
         if bstate is None or "costs" not in params:
             raise ValueError('budget "auto" needs params["costs"] (cost_model.load_or_calibrate(...).costs()) and a '
@@ -352,14 +362,9 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         option = budget_lib.choose(params["costs"], bstate, opts, jnp.any(use_retrieval), hcfg.budget.retry_share,
                                    hcfg.budget.margin)
         # Plain AR (option 0) means no retrieval work at all: no query (and so no verify-skip).
-        plain_ar = option == 0
-        n = hcfg.n_candidates
-        no_query = lambda _: (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32),  # noqa: E731
-                              jnp.full((b, n), jnp.inf, jnp.float32), jnp.zeros((b, n), bool))
-        cand, dist, valid = jax.lax.cond(
-            plain_ar, no_query, lambda _: retrieval.query(params["store"], keys, task, n, hcfg.max_dist), None)
+        cand, dist, valid = jax.lax.cond(option == 0, no_query, query, None)
     else:
-        cand, dist, valid = retrieval.query(params["store"], keys, task, hcfg.n_candidates, hcfg.max_dist)
+        cand, dist, valid = query(None)
     # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
     in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
     skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,

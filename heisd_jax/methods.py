@@ -127,6 +127,8 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
         for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
             if key not in settings:
                 s[key] = value
+    if s.get("n_candidates") == 0 and "skip" not in settings:  # verify-skip needs the datastore's candidates
+        s["skip"] = False
     cal = calibration or {}
     spec = spec_decode.SpecConfig(**{k: s[k] for k in SPEC_SETTINGS if k in s})
     seq = acceptance.SeqRelaxedConfig(**{k: s[k] for k in ("r_max", "r_seq") if k in s})
@@ -141,7 +143,8 @@ def hybrid_config(name: str, settings: dict, calibration: dict | None = None) ->
         relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
         n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0),
         max_dist=s.get("max_dist", float("inf")),
-        verify=s.get("verify", "prefill"), continuation=s.get("continuation", "drafter"), skip=skip, metric=metric, boundary=kinematics.BoundaryConfig(**bd),
+        verify=s.get("verify", "prefill"), continuation=s.get("continuation", "drafter"), skip=skip, metric=metric,
+        boundary=kinematics.BoundaryConfig(**bd),
         budget=budget_config(s, settings))
 
 

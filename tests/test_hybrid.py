@@ -163,6 +163,13 @@ def test_recent_actions_are_verified_as_candidates(setup):
         whole.append(np.asarray(stats["retrieval_whole"]))
     assert not whole[0].all() and whole[1].all() and whole[2].all()
     np.testing.assert_array_equal(np.asarray(stats["target_passes"]), 1)
+    # The recent actions alone, AR after them: no datastore query (no store in params at all).
+    alone = dataclasses.replace(hcfg, n_candidates=0, continuation="ar")
+    state = hybrid.init_state(B, spec, alone)
+    for t in range(2):
+        _, tokens, state, stats = run(params, CFG, alone, spec, tok, state, obs, kin, jnp.arange(B))
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+        np.testing.assert_array_equal(np.asarray(stats["target_passes"]), 7 if t == 0 else 1)
     with pytest.raises(ValueError, match="n_candidates \\+ recent_candidates must be <= 12"):
         dataclasses.replace(hcfg, recent_candidates=12).check_fits(vla.VLAConfig(cache_slots=160))
 
@@ -176,6 +183,12 @@ def test_config_rejects_bad_settings():
         hybrid.HybridConfig(acceptance="strict")
     with pytest.raises(ValueError, match=r"n_candidates \+ recent_candidates must be <="):
         hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
+    with pytest.raises(ValueError, match="nothing to verify"):
+        hybrid.HybridConfig(n_candidates=0, skip=acceptance.SkipConfig(enabled=False))
+    with pytest.raises(ValueError, match="n_candidates=0 .* switch skip off"):
+        hybrid.HybridConfig(n_candidates=0, recent_candidates=4)
+    with pytest.raises(ValueError, match="valid: drafter, ar"):
+        hybrid.HybridConfig(continuation="eagle")
     with pytest.raises(ValueError, match="tau_on > tau_off"):
         kinematics.BoundaryConfig(tau_on=0.5, tau_off=0.8)
 
@@ -198,6 +211,7 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     with pytest.raises(ValueError, match="switch skip off"):
         methods.check_settings("heisd", {"acceptance": "strict", "skip": True})
     assert methods.hybrid_config("heisd", {"acceptance": "strict"}).lossless
+    assert not methods.hybrid_config("heisd", {"n_candidates": 0}).skip.enabled  # skip needs the datastore
     assert not methods.hybrid_config("heisd", {}).lossless
     with pytest.raises(ValueError, match="unknown settings \\['top_k'\\]; valid: dtype"):
         methods.check_settings("ar", {"top_k": 4})
