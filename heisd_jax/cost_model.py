@@ -209,6 +209,11 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
             return t, r
         return timed
 
+    def row(fixed, round_ms, t, r):
+        """(fixed, round, whole decode, its rounds); a fixed part is never below the prefill,
+        and every drafting option queries the datastore first."""
+        return max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms, t, r
+
     def in_context(timed, name, round_ms):
         """Fixed part and round cost of a retrieval option from its whole decodes: the
         zero-round anchor (candidates accepted whole) and the slope to random candidates."""
@@ -221,9 +226,8 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
 
     ar_retrieval = budget.Option(None, True)
     if ar_retrieval in opts:  # the candidates verified in the prefill, then AR passes (no drafter)
-        fixed, round_ms, t, r = in_context(decoder(dataclasses.replace(hcfg, continuation="ar")), ar_retrieval.name,
-                                           pieces["cached_ms"]["1"])
-        rows[ar_retrieval.name] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms, t, r)
+        rows[ar_retrieval.name] = row(*in_context(decoder(dataclasses.replace(hcfg, continuation="ar")),
+                                                  ar_retrieval.name, pieces["cached_ms"]["1"]))
     for tree in dict.fromkeys(o.tree for o in opts if o.tree is not None):
         spec = budget.tree_spec(hcfg.spec, tree)
         timed = decoder(dataclasses.replace(hcfg, spec=spec, continuation="drafter"))
@@ -235,12 +239,11 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
             lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s), tp, dp, s0)
         mine = [o for o in opts if o.tree == tree]
         if any(o.retrieval for o in mine):  # the round's cost in context: slope from the zero-round anchor
-            fixed, round_ms, t, r = in_context(timed, name + "+retrieval", round_ms)
-            rows[name + "+retrieval"] = (max(fixed, pieces["prefill_ms"]["0"]) + query_ms, round_ms, t, r)
+            rows[name + "+retrieval"] = row(*in_context(timed, name + "+retrieval", round_ms))
+            round_ms = rows[name + "+retrieval"][1]
         if any(not o.retrieval for o in mine):
             t, r = timed(jnp.zeros((batch,), bool), draws)
-            rows[name] = (max(float(np.median(t - r * round_ms)), pieces["prefill_ms"]["0"]) + query_ms, round_ms,
-                          float(np.median(t)), float(np.median(r)))
+            rows[name] = row(float(np.median(t - r * round_ms)), round_ms, float(np.median(t)), float(np.median(r)))
     fixed, rnd, whole, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
     return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,

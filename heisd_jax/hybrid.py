@@ -195,23 +195,25 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         acc = jnp.max(length, 1)  # [B] 0..7
         best_cand = jnp.take_along_axis(cand, best[:, None, None], 1)[:, 0]  # [B, 7]
         best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
+        # The accepted prefix (tokens 1..acc) is kept and committed; the target's token acc+1 follows.
+        i = jnp.arange(ACTION_DIM)[None]
+        bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
+        chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
+        committed = vla.commit(cache, block_kv, chain, jnp.minimum(acc, c))
         if hcfg.continuation == "ar":
-            return _continue_ar(tp, cfg, cache, block_kv, best, best_cand, best_target, acc, passes, skip, cand[:, 0])
+            return _continue_ar(tp, cfg, committed, best_cand, bonus, acc, passes, skip, cand[:, 0])
 
         first = jnp.where(acc >= 1, best_cand[:, 0], greedy1 + first_id)
         s0 = spec_decode.start(tp, dp, cfg, logits, hidden, x, cache, obs, first=first,
                                slack=max(hcfg.spec.depth, ACTION_DIM) + 1)
-        # Hand an accepted retrieval prefix (tokens 1..acc) to the drafter state: token 1 is
-        # the root; tokens 2..acc are its accepted path; the bonus is the target's token acc+1.
-        i = jnp.arange(ACTION_DIM)[None]
+        # Hand the accepted prefix to the drafter state: token 1 is the root; tokens 2..acc
+        # are its accepted path; the bonus is the target's token acc+1.
         n_acc = jnp.maximum(acc - 1, 0)
         rest = jnp.concatenate([best_cand[:, 1:], jnp.zeros((b, 1), jnp.int32)], 1)  # tokens 2..7, pad
-        bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, ACTION_DIM - 1)[:, None], 1)
         tokens = jnp.where(i == n_acc[:, None], bonus, rest)
-        chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
         hid = jnp.take_along_axis(bhidden, chain[..., None], 1)
         v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
-                                 hidden=hid, cache=vla.commit(cache, block_kv, chain, jnp.minimum(acc, c)))
+                                 hidden=hid, cache=committed)
         s1 = spec_decode.advance(tp, dp, cfg, s0, v)
         s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
         s = spec_decode.select_state(acc >= 1, s1, s0)
@@ -235,19 +237,14 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
     return tokens, stats
 
 
-def _continue_ar(tp, cfg: vla.VLAConfig, cache: vla.KVCache, block_kv: vla.Block, best, best_cand, best_target, acc,
-                 passes, skip, top_candidate):
+def _continue_ar(tp, cfg: vla.VLAConfig, committed: vla.KVCache, best_cand, bonus, acc, passes, skip, top_candidate):
     """`decode`'s tail with `continuation="ar"`: a row keeps its best candidate's accepted
-    tokens 1..acc and the target's token acc+1 (from the same pass), commits the accepted
-    ones into the cache and decodes the rest by single-token target passes; no drafter."""
-    c = ACTION_DIM - 1
+    tokens 1..acc (already in `committed`) and the target's token acc+1 (`bonus` [B, 1],
+    from the same pass), and decodes the rest by single-token target passes; no drafter."""
     i = jnp.arange(ACTION_DIM)[None]
-    bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
     out = jnp.where(i < acc[:, None], best_cand, jnp.where(i == acc[:, None], bonus, 0))
-    chain = best[:, None] * c + jnp.arange(c)[None]  # block offsets of the best chain's nodes
-    cache = vla.commit(cache, block_kv, chain, jnp.minimum(acc, c))
     n_out = jnp.where(skip, ACTION_DIM, jnp.minimum(acc + 1, ACTION_DIM))  # skipped rows are done
-    out, steps = vla.ar_continue(tp, cfg, cache, out, n_out)
+    out, steps = vla.ar_continue(tp, cfg, committed, out, n_out)
     ran = (~skip).astype(jnp.float32)
     steps = steps.astype(jnp.float32)
     return jnp.where(skip[:, None], top_candidate, out), {
@@ -350,8 +347,11 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     bstate = state.budget
     auto = hcfg.budget.mode == "auto"
     n = hcfg.n_candidates
-    no_query = lambda _: (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32),  # noqa: E731
-                          jnp.full((b, n), jnp.inf, jnp.float32), jnp.zeros((b, n), bool))
+
+    def no_query(_):
+        return (jnp.full((b, n, ACTION_DIM), cfg.first_action_id, jnp.int32), jnp.full((b, n), jnp.inf, jnp.float32),
+                jnp.zeros((b, n), bool))
+
     def query(_):
         return no_query(None) if n == 0 else retrieval.query(params["store"], keys, task, n, hcfg.max_dist)
     if auto:
