@@ -1,8 +1,14 @@
-"""An RGB camera rendered inside JAX by ray casting (`mjx.ray`), one ray per pixel.
+"""RGB cameras rendered inside JAX by ray casting (`mjx.ray`), one ray per pixel.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
 from normals estimated on the depth map and a mild distance falloff. Geom colours are an
 input, so objects can be recoloured per episode without changing the (shared) model.
+
+The policy's image holds one or more views of the same square size, tiled left to right
+(`VIEWS`): the agent view (a fixed camera in front of the table) and, with `wrist=True`,
+the wrist camera on the hand. A ViT over the tiled image patchifies each view separately
+(the view size is a multiple of the patch size) and tells them apart by the patches'
+learned position embeddings, as a per-view encoder with shared weights would.
 """
 
 from __future__ import annotations
@@ -18,31 +24,52 @@ BACKGROUND = np.array([0.55, 0.62, 0.70])
 LIGHT_DIR = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
 
 
+VIEWS = ("agentview", "wrist")  # camera names (scene / robot MJCF), in tiling order
+
+
 @dataclasses.dataclass(frozen=True)
 class CameraConfig:
-    height: int = 64
-    width: int = 64
-    fovy_deg: float = 50.0
+    height: int = 64  # of each view
+    width: int = 64  # of each view
+    wrist: bool = False  # tile the wrist camera's view right of the agent view
+
+    @property
+    def views(self) -> tuple[str, ...]:
+        return VIEWS if self.wrist else VIEWS[:1]
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        """[H, W * n_views, 3]: the observation's image."""
+        return (self.height, self.width * len(self.views), 3)
 
 
-def pixel_rays(cfg: CameraConfig) -> np.ndarray:
+def pixel_rays(height: int, width: int, fovy_deg: float) -> np.ndarray:
     """[H, W, 3] unit ray directions in the camera frame (MuJoCo: looks along -z, y up)."""
-    t = np.tan(np.deg2rad(cfg.fovy_deg) / 2)
-    aspect = cfg.width / cfg.height
-    ys = (1 - 2 * (np.arange(cfg.height) + 0.5) / cfg.height) * t
-    xs = (2 * (np.arange(cfg.width) + 0.5) / cfg.width - 1) * t * aspect
-    dirs = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -np.ones((cfg.height, 1))), -1)
+    t = np.tan(np.deg2rad(fovy_deg) / 2)
+    aspect = width / height
+    ys = (1 - 2 * (np.arange(height) + 0.5) / height) * t
+    xs = (2 * (np.arange(width) + 0.5) / width - 1) * t * aspect
+    dirs = np.stack(np.broadcast_arrays(xs[None, :], ys[:, None], -np.ones((height, 1))), -1)
     return (dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).astype(np.float32)
 
 
-def render(m: mjx.Model, d: mjx.Data, cam_id: int, geom_rgb: jnp.ndarray, cfg: CameraConfig) -> jnp.ndarray:
+def render_views(mj_model, m: mjx.Model, d: mjx.Data, geom_rgb: jnp.ndarray, cfg: CameraConfig) -> jnp.ndarray:
+    """The observation image [H, W * n_views, 3] uint8: `cfg.views` tiled left to right.
+    `mj_model` (the host model) supplies each camera's id and field of view."""
+    return jnp.concatenate([
+        render(m, d, mj_model.camera(v).id, geom_rgb, cfg.height, cfg.width, float(mj_model.camera(v).fovy[0]))
+        for v in cfg.views], axis=1)
+
+
+def render(m: mjx.Model, d: mjx.Data, cam_id: int, geom_rgb: jnp.ndarray, height: int, width: int,
+           fovy_deg: float) -> jnp.ndarray:
     """RGB image [H, W, 3] uint8 from camera `cam_id`; `geom_rgb` [ngeom, 3] in [0, 1]."""
     origin = d.cam_xpos[cam_id]
-    dirs = jnp.asarray(pixel_rays(cfg)) @ d.cam_xmat[cam_id].reshape(3, 3).T  # [H, W, 3] world
+    dirs = jnp.asarray(pixel_rays(height, width, fovy_deg)) @ d.cam_xmat[cam_id].reshape(3, 3).T  # [H, W, 3] world
     # Groups 0-2 are visible; the invisible group 3+ (none used now) is skipped.
     cast = jax.vmap(lambda v: mjx.ray(m, d, origin, v, geomgroup=(1, 1, 1, 0, 0, 0)))
     dist, gid = cast(dirs.reshape(-1, 3))
-    dist, gid = dist.reshape(cfg.height, cfg.width), gid.reshape(cfg.height, cfg.width)
+    dist, gid = dist.reshape(height, width), gid.reshape(height, width)
     hit = gid >= 0
     dist = jnp.where(hit, dist, 10.0)
     pts = origin + dirs * dist[..., None]

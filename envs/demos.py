@@ -5,13 +5,14 @@ Layout of a dataset directory:
     shard_00000/<field>.npy one uncompressed array per field, steps of many episodes
     shard_00001/...
 Per-step fields (N = steps in the shard):
-    image [N, H, W, 3] uint8     agent-view RGB before the action
+    image [N, H, W, 3] uint8     camera views before the action (meta "views", tiled along W)
     proprio [N, 8] float32       ee position, ee quaternion, jaw opening
-    action [N, 7] float32        the expert's action, in [-1, 1]
+    action [N, 7] float32        the expert's action (the label), in [-1, 1]
     ee_vel, ee_ang_vel, ee_acc [N, 3] float32, gripper_vel [N] float32   kinematics
 Per-episode data lives in meta.json's "episodes" list: task name, task index (into the
 "tasks" list), instruction, split key episode number, shard, start row, length, success.
-Only successful episodes are stored.
+Expert datasets store successful episodes only; DAgger datasets (meta "policy" names the
+checkpoint that drove) store every episode, the expert's labels on the policy's states.
 
 Writes go to a temporary sibling directory that is renamed into place only after
 meta.json is complete, so an interrupted collection never leaves a dataset that looks

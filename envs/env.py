@@ -35,7 +35,7 @@ class EnvConfig:
 
 @struct.dataclass
 class Observation:
-    image: jnp.ndarray  # [H, W, 3] uint8, agent-view camera
+    image: jnp.ndarray  # [H, W * n_views, 3] uint8: agent view (and wrist view), envs.camera
     proprio: jnp.ndarray  # [8] ee position, ee quaternion, jaw opening
     instruction: jnp.ndarray  # [L] int32 token ids (envs.language)
 
@@ -209,9 +209,9 @@ class TabletopEnv:
     def _observe(self, data: mjx.Data, kin: proprio.EEKinematics, info: EpisodeInfo) -> Observation:
         cfg = self.config.camera
         if self.config.render:
-            image = camera.render(self.model, data, self.ids.camera, self.geom_colors(info), cfg)
+            image = camera.render_views(self.mj_model, self.model, data, self.geom_colors(info), cfg)
         else:
-            image = jnp.zeros((cfg.height, cfg.width, 3), jnp.uint8)
+            image = jnp.zeros(cfg.image_shape, jnp.uint8)
         return Observation(image=image, proprio=proprio.proprio_vector(kin), instruction=self.instructions[info.task_id])
 
     def geom_colors(self, info: EpisodeInfo) -> jnp.ndarray:

@@ -10,8 +10,14 @@ For each goal in order, a phase machine drives the tool centre point (TCP):
     the jaw closed, PUSH along the object->zone line with lateral correction, RETREAT.
 While carrying, targets are expressed for the object (the TCP target is the object target
 plus the current TCP-object offset), so placement heights are exact whatever the grasp.
-Actions are proportional to the pose error, saturated at the action bounds; optional
-Gaussian action noise (not on the gripper) diversifies demonstrations.
+Actions are proportional to the pose error, scaled down as a whole (direction kept) where
+they would leave the action bounds; optional Gaussian action noise (not on the gripper)
+diversifies demonstrations.
+
+Phase changes depend on the state the expert sees, not only on its own path, so it can
+label any state a learner reaches (DAgger): it descends from wherever the TCP is aligned
+over the object at or below the hover height, and goes back to the approach when the TCP
+drifts off the object's axis while descending; a dropped object restarts the goal.
 """
 
 from __future__ import annotations
@@ -66,6 +72,12 @@ def init(state: EnvState, env: TabletopEnv) -> ExpertState:
     phase0 = jnp.where(kind0 == tasks_lib.GOAL_KINDS.index("push_to_zone"), PUSH_APPROACH, APPROACH)
     return ExpertState(goal=jnp.zeros((), jnp.int32), phase=phase0.astype(jnp.int32), timer=jnp.zeros((), jnp.int32),
                        yaw=jnp.zeros(()))
+
+
+def _saturate(v, bound):
+    """v scaled down (direction kept) so that no component exceeds `bound` in magnitude:
+    a far target gives a full-speed move straight at it, not a per-axis bang-bang command."""
+    return v * jnp.minimum(1.0, bound / jnp.maximum(jnp.max(jnp.abs(v)), 1e-9))
 
 
 def _tcp_yaw(quat):
@@ -165,7 +177,8 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
         err / env.config.control.max_pos_step * cfg.gain,
         rot_err / env.config.control.max_rot_step * cfg.gain,
     ])
-    motion = jnp.where(phase == PUSH, jnp.clip(motion, -cfg.push_speed, cfg.push_speed), motion)
+    bound = jnp.where(phase == PUSH, cfg.push_speed, 1.0)
+    motion = jnp.concatenate([_saturate(motion[:3], bound), _saturate(motion[3:], 1.0)])
     motion = motion + cfg.action_noise * jax.random.normal(key, (6,))
     action = jnp.concatenate([jnp.clip(motion, -1, 1), jnp.where(closed, 1.0, -1.0)[None]])
 
@@ -176,8 +189,9 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     goal_done = status[g]
     next_phase = jnp.select(
         [
-            (phase == APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
+            (phase == APPROACH) & (xy_err < cfg.pos_tol) & (err[2] > -cfg.pos_tol) & yaw_ok,
             (phase == DESCEND) & (jnp.abs(err[2]) < cfg.grasp_z_tol) & (xy_err < cfg.grasp_xy_tol),
+            (phase == DESCEND) & (xy_err > 2 * cfg.pos_tol),
             (phase == GRASP) & (es.timer >= cfg.grasp_steps),
             (phase == LIFT) & (jnp.abs(err[2]) < cfg.pos_tol) & (kind != tasks_lib.GOAL_KINDS.index("lift")),
             (phase == CARRY) & (xy_err < cfg.pos_tol),
@@ -190,7 +204,7 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
             (phase == PUSH) & lost_contact,
             (phase == PUSH_RETREAT) & (jnp.abs(err[2]) < 0.03),
         ],
-        [DESCEND, GRASP, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE, PUSH_DESCEND, PUSH, PUSH_RETREAT, PUSH_APPROACH, DONE],
+        [DESCEND, GRASP, APPROACH, LIFT, CARRY, LOWER, RELEASE, RETREAT, DONE, PUSH_DESCEND, PUSH, PUSH_RETREAT, PUSH_APPROACH, DONE],
         phase,
     )
     # A dropped object (not near the TCP while it should be held) sends the expert back.

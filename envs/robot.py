@@ -21,6 +21,21 @@ ARM_UPPER = np.array([2.8973, 1.7628, 2.8973, -0.0698, 2.8973, 3.7525, 2.8973])
 HOME_QPOS = np.array([0.0, -0.35, 0.0, -2.45, 0.0, 2.1, 0.785])
 FINGER_OPEN = 0.04  # per-finger opening (m); the jaw opens 0.08 m in total.
 EE_SITE = "tcp"
+# Wrist camera, on the hand beside the jaw (hand frame: z points from the flange to the
+# fingertips, the jaw opens along y): it looks down past the fingertips at the point 6 cm
+# below the TCP, the fingers at the bottom edge of its image, as a Franka's wrist camera.
+WRIST_CAMERA = "wrist"
+WRIST_CAMERA_POS = (0.06, 0.0, 0.03)
+WRIST_CAMERA_LOOK_AT = (0.0, 0.0, 0.16)
+WRIST_CAMERA_FOVY = 75.0
+
+
+def _wrist_xyaxes() -> str:
+    """The wrist camera's image x axis along the jaw (hand y); it looks along its -z."""
+    view = np.subtract(WRIST_CAMERA_LOOK_AT, WRIST_CAMERA_POS)
+    z = -view / np.linalg.norm(view)
+    x = np.array([0.0, 1.0, 0.0])
+    return " ".join(f"{v:.6f}" for v in (*x, *np.cross(z, x)))
 
 # Collision bits (contype / conaffinity): objects collide with everything; the environment
 # (table, plate, basket) and the gripper collide only with objects.
@@ -73,6 +88,7 @@ def robot_mjcf() -> str:
                       <inertial pos="0 0 0.03" mass="0.73" diaginertia="0.0025 0.0024 0.0017"/>
                       <geom name="hand" type="box" size="0.025 0.095 0.025" pos="0 0 0.028" {grip} material="white"/>
                       <site name="{EE_SITE}" pos="0 0 0.1034" size="0.005" group="4"/>
+                      <camera name="{WRIST_CAMERA}" pos="{' '.join(map(str, WRIST_CAMERA_POS))}" xyaxes="{_wrist_xyaxes()}" fovy="{WRIST_CAMERA_FOVY}"/>
                       <body name="finger_left" pos="0 0 0.0584" gravcomp="1">
                         <inertial pos="0 0.01 0.03" mass="0.015" diaginertia="2.4e-6 2.4e-6 6e-7"/>
                         <joint name="finger_left" type="slide" axis="0 1 0" range="0 {FINGER_OPEN}" damping="1" armature="0.01"/>

@@ -88,26 +88,39 @@ def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jn
 
 
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
-                    exec_noise: float = 0.0):
+                    exec_noise: float = 0.0, teacher: Policy | None = None, beta: float = 0.0):
     """Like run_episodes for exactly `n_steps`, also returning the trajectory: a dict of
     [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics,
     done, and the policy's per-step decode statistics under "stats").
 
     exec_noise: std of Gaussian noise added to the six motion dimensions of the *executed*
     action only; the recorded action is the policy's own (noise injection as in DART: more
-    diverse states, clean labels)."""
+    diverse states, clean labels).
+
+    teacher: DAgger (Ross et al. 2011). The teacher acts alongside on every state the
+    rollout visits, and its action is the recorded label ("action"; the policy's own is
+    under "policy_action"); each env executes the teacher's action with probability
+    `beta` per step and the policy's otherwise, so the states are the policy's."""
     state, pstate, act_keys = _start(env, policy, keys, task_ids)
+    tstate = None if teacher is None else teacher.init(teacher.params, state)
 
     def body(carry, t):
-        state, pstate = carry
+        state, pstate, tstate = carry
         action, pstate, stats = _act(policy, state, pstate, act_keys, t)
         out = dict(stats=stats, image=state.obs.image, proprio=state.obs.proprio, action=action, ee_vel=state.kin.lin_vel,
                    ee_ang_vel=state.kin.ang_vel, ee_acc=state.kin.lin_acc, gripper_vel=state.kin.gripper_vel,
                    done=state.done)
-        noise_keys = jax.vmap(lambda k: jax.random.fold_in(jax.random.fold_in(k, t), 1))(act_keys)
-        noise = exec_noise * jax.vmap(lambda k: jax.random.normal(k, (6,)))(noise_keys)
-        executed = action.at[:, :6].set(jnp.clip(action[:, :6] + noise, -1.0, 1.0))
-        return (jax.vmap(env.step)(state, executed), pstate), out
+        step_keys = jax.vmap(lambda k: jax.random.fold_in(k, t))(act_keys)
+        executed = action
+        if teacher is not None:
+            label, tstate, _ = teacher.act(teacher.params, state, tstate,
+                                           jax.vmap(lambda k: jax.random.fold_in(k, 2))(step_keys))
+            take = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 3)) < beta)(step_keys)
+            executed = jnp.where(take[:, None], label, action)
+            out.update(action=label, policy_action=action)
+        noise = exec_noise * jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(k, 1), (6,)))(step_keys)
+        executed = executed.at[:, :6].set(jnp.clip(executed[:, :6] + noise, -1.0, 1.0))
+        return (jax.vmap(env.step)(state, executed), pstate, tstate), out
 
-    (state, _), traj = jax.lax.scan(body, (state, pstate), jnp.arange(n_steps))
+    (state, _, _), traj = jax.lax.scan(body, (state, pstate, tstate), jnp.arange(n_steps))
     return state, traj

@@ -142,7 +142,8 @@ class SceneIds:
     ee_site: int
     hand_body: int
     pad_geoms: np.ndarray  # [2]
-    camera: int
+    camera: int  # agent view
+    wrist_camera: int
 
 
 def scene_ids(m: mujoco.MjModel) -> SceneIds:
@@ -161,6 +162,7 @@ def scene_ids(m: mujoco.MjModel) -> SceneIds:
         hand_body=m.body("hand").id,
         pad_geoms=np.array([m.geom("pad_left").id, m.geom("pad_right").id]),
         camera=m.camera("agentview").id,
+        wrist_camera=m.camera(robot.WRIST_CAMERA).id,
     )
 
 

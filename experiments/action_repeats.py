@@ -28,7 +28,7 @@ import numpy as np
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint
-from heisd_jax import acceptance, checkpoint
+from heisd_jax import acceptance, checkpoint, methods
 
 FLAGS = flags.FLAGS
 
@@ -61,7 +61,7 @@ def simulate_repeat_skip(bins: np.ndarray, live: np.ndarray, n_confirm: int, k_s
 
 def main(argv):
     del argv
-    env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites))
+    env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
     _, actions, done = bench_methods.record(env, FLAGS.record_envs, FLAGS.steps)
     _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
     bins = np.asarray(tok.to_bins(np.asarray(actions))).astype(np.int32)  # [T, B, 7]

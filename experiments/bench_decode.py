@@ -52,7 +52,7 @@ flags.DEFINE_string("out", "", "Optional JSON output path.")
 def random_observation(cfg: vla.VLAConfig, batch: int, seed: int = 0) -> vla.Observation:
     rng = np.random.default_rng(seed)
     return vla.Observation(
-        image=jnp.asarray(rng.integers(0, 256, (batch, cfg.image_size, cfg.image_size, 3), np.uint8)),
+        image=jnp.asarray(rng.integers(0, 256, (batch, *cfg.image_shape), np.uint8)),
         instruction=jnp.asarray(rng.integers(1, cfg.text_vocab, (batch, cfg.text_len)), jnp.int32),
         proprio=jnp.asarray(rng.normal(size=(batch, cfg.proprio_dim)), jnp.float32))
 

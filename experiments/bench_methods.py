@@ -182,7 +182,7 @@ def main(argv):
     if sizes[0] < 1 or sizes[-1] > FLAGS.record_envs:
         raise app.UsageError(f"batch sizes must be in 1..--record_envs={FLAGS.record_envs}, got {sizes}")
     method_list = [("ar", {})] + [m for m in method_list if m != ("ar", {})]
-    env = TabletopEnv(task_list)
+    env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
     t0 = time.perf_counter()
     states, ar_actions, done = record(env, FLAGS.record_envs, FLAGS.steps)
     print(f"recorded {FLAGS.record_envs} envs x {FLAGS.steps} steps of {FLAGS.record_method} in "

@@ -38,7 +38,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
-from envs.env import EnvConfig, TabletopEnv
+from envs.env import TabletopEnv
 from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
 
 FLAGS = flags.FLAGS
@@ -133,7 +133,7 @@ def main(argv):
         raise app.UsageError("--batch_sizes is empty")
     if FLAGS.episodes < 1 or FLAGS.seq_episodes < 1:
         raise app.UsageError("--episodes and --seq_episodes must be >= 1")
-    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
+    env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter)
     device = f"{jax.devices()[0].device_kind} x{jax.device_count()}"
     print(f"{FLAGS.method} on {len(task_list)} tasks, {device}, jax {jax.__version__}", flush=True)

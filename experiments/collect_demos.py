@@ -1,15 +1,17 @@
-"""Collects scripted-expert demonstrations, batched, into an envs.demos dataset.
+"""Collects demonstrations into an envs.demos dataset: the scripted expert's own episodes, or
+(DAgger) the expert's labels on the states a VLA policy visits.
 
   python -m experiments.collect_demos --suites=all --episodes_per_task=50 --num_envs=256 \
-      --out=data/demos
+      --wrist --out=data/demos
+  python -m experiments.collect_demos --policy=runs/vla0 --beta=0.3 --first_episode=1000 \
+      --out=data/dagger1           # DAgger: the policy drives, the expert labels
 
 Episodes use the training initial-state keys (disjoint from the 50 evaluation states).
-Only successful episodes are kept; the dataset appears at --out only once complete.
+Expert episodes are kept only when successful; DAgger episodes are kept whole (the states
+where the policy goes wrong are the point). The dataset appears at --out only once complete.
 """
 
 from __future__ import annotations
-
-import time
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +28,12 @@ flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib
 flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes_per_task", 50, "Training episodes attempted per task.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
-flags.DEFINE_integer("image_size", 64, "Camera resolution (square).")
+flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
+flags.DEFINE_bool("wrist", True, "Also render the wrist camera (tiled right of the agent view).")
+flags.DEFINE_string("policy", "", "DAgger: a VLA checkpoint that drives the episodes (greedy AR) while the expert "
+                    "labels every visited state; its camera settings are used. Empty: the expert drives.")
+flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's action instead of the policy's, "
+                   "per env and step.")
 flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the executed motion actions (diversity); "
                    "the recorded labels are the expert's clean actions.")
 flags.DEFINE_integer("first_episode", 0, "Index of the first training initial state (to extend a dataset).")
@@ -41,20 +48,45 @@ def main(argv):
     for name in ("episodes_per_task", "num_envs", "image_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
-    cam = camera.CameraConfig(height=FLAGS.image_size, width=FLAGS.image_size)
-    env = TabletopEnv(task_list, EnvConfig(camera=cam))
+    if not 0.0 <= FLAGS.beta <= 1.0:
+        raise app.UsageError(f"--beta must be in [0, 1], got {FLAGS.beta}")
+    if FLAGS.beta and not FLAGS.policy:
+        raise app.UsageError("--beta needs --policy (without one the expert drives every step)")
+    if FLAGS.first_episode < 0:
+        raise app.UsageError("--first_episode must be >= 0")
+    dagger = bool(FLAGS.policy)
+    if dagger:
+        from heisd_jax import methods  # noqa: PLC0415
+
+        try:
+            env_cfg = methods.env_config("ar", FLAGS.policy)
+            env = TabletopEnv(task_list, env_cfg)
+            learner = methods.make_policy("ar", env, checkpoint=FLAGS.policy)
+        except ValueError as e:
+            raise app.UsageError(str(e)) from e
+    else:
+        env = TabletopEnv(task_list, EnvConfig(camera=camera.CameraConfig(
+            height=FLAGS.image_size, width=FLAGS.image_size, wrist=FLAGS.wrist)))
+    cam = env.config.camera
     policy = expert.policy(env)
     meta = dict(
         suites=sorted({t.suite for t in task_list}),
         tasks=[{"name": t.name, "suite": t.suite, "instruction": t.instruction} for t in task_list],
-        image_size=FLAGS.image_size, control_dt=scene.CONTROL_DT, executed_action_noise=FLAGS.action_noise,
-        labels="clean expert actions",
+        image_size=cam.height, views=list(cam.views), control_dt=scene.CONTROL_DT,
+        executed_action_noise=FLAGS.action_noise,
+        labels="expert actions on the policy's states (DAgger)" if dagger else "clean expert actions",
+        policy=FLAGS.policy or "expert", beta=FLAGS.beta if dagger else 1.0,
         split="train",
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
     pairs = [(t, FLAGS.first_episode + e) for t in range(len(task_list)) for e in range(FLAGS.episodes_per_task)]
     n_steps = int(max(t.max_steps for t in task_list))
-    record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps, exec_noise=FLAGS.action_noise))
+    if dagger:
+        record = jax.jit(lambda k, t: rollout.record_episodes(env, learner, k, t, n_steps, exec_noise=FLAGS.action_noise,
+                                                              teacher=policy, beta=FLAGS.beta))
+    else:
+        record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps, exec_noise=FLAGS.action_noise))
+    agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
     kept = 0
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
@@ -68,14 +100,18 @@ def main(argv):
                 final, traj = jax.device_get(record(keys, jnp.asarray(tids, jnp.int32)))
                 steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
                 for i, (t, e) in enumerate(chunk):
-                    if not final.success[i]:
+                    if not (final.success[i] or dagger):
                         continue
                     n = int(final.step[i])
+                    if dagger:
+                        same = np.abs(traj["policy_action"][:n, i] - traj["action"][:n, i]) <= 1.0 / 128
+                        agree[0] += int(same.all(-1).sum())
+                        agree[1] += n
                     for f in demos.STEP_FIELDS:
                         steps[f].append(traj[f][:n, i])
                     task = task_list[t]
                     records.append(dict(task=task.name, suite=task.suite, task_index=t, instruction=task.instruction,
-                                        episode=int(e), start=row, length=n))
+                                        episode=int(e), start=row, length=n, success=bool(final.success[i])))
                     row += n
                 if records:
                     writer.add_shard({f: np.concatenate(v) for f, v in steps.items()}, records)
@@ -85,7 +121,13 @@ def main(argv):
     except BaseException:
         writer.abort()
         raise
-    print(f"kept {kept}/{len(pairs)} successful episodes ({kept / len(pairs):.1%}) -> {path}")
+    if dagger:
+        n_succ = sum(r.get("success", False) for r in demos.DemoDataset(path).episodes)
+        print(f"DAgger: {kept} episodes, policy success {n_succ / max(kept, 1):.1%} (beta {FLAGS.beta}); policy action "
+              f"within one bin of the expert's in all 7 dims on {agree[0] / max(agree[1], 1):.1%} of {agree[1]} steps "
+              f"-> {path}")
+    else:
+        print(f"kept {kept}/{len(pairs)} successful episodes ({kept / len(pairs):.1%}) -> {path}")
 
 
 if __name__ == "__main__":

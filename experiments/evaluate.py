@@ -19,7 +19,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import tasks as tasks_lib
-from envs.env import EnvConfig, TabletopEnv
+from envs.env import TabletopEnv
 import jax
 
 from heisd_jax import budget, cost_model, evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
@@ -108,8 +108,8 @@ def main(argv):
             name = key.removesuffix("_path")
             settings[name] = os.path.abspath(paths[name])
     done = results_io.load_resumable(FLAGS.out, settings)
-    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(FLAGS.method, True)))
     try:
+        env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
                                      cost_cache=FLAGS.cost_cache or None, **kwargs)

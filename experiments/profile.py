@@ -98,7 +98,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if FLAGS.batch < 1 or FLAGS.steps < 1:
         raise app.UsageError("--batch and --steps must be >= 1")
-    env = TabletopEnv(task_list)
+    env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=FLAGS.batch, **settings)

@@ -30,7 +30,7 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
 import mujoco
 from envs import tasks as tasks_lib
-from envs.env import EnvConfig, TabletopEnv
+from envs.env import TabletopEnv
 from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
 
 FLAGS = flags.FLAGS
@@ -68,7 +68,7 @@ def _provenance() -> dict:
 
 def run_cell(cell: dict, task_list, progress) -> dict:
     name, settings = cell["method"], dict(cell["settings"])
-    env = TabletopEnv(task_list, EnvConfig(render=methods.USES_CAMERA.get(name, True)))
+    env = TabletopEnv(task_list, methods.env_config(name, FLAGS.checkpoint))
     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                  datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(), **settings)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}

@@ -52,7 +52,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if not 0 <= FLAGS.episode < tasks_lib.N_EVAL_INIT_STATES:
         raise app.UsageError(f"--episode must be in 0..{tasks_lib.N_EVAL_INIT_STATES - 1}")
-    env = TabletopEnv(task)
+    env = TabletopEnv(task, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                  datastore=FLAGS.datastore, batch_size=1, **settings)
     n = FLAGS.steps or task[0].max_steps

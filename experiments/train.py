@@ -2,6 +2,12 @@
 
   python -m experiments.train --model=vla --demos=data/demos --out=runs/vla --steps=8000
   python -m experiments.train ... --export=checkpoints/vla     # also write the shippable policy
+  python -m experiments.train --demos=data/demos,data/dagger1 --init=runs/vla0.policy ...  # DAgger
+
+--demos takes several datasets (expert demonstrations first, then DAgger aggregates): their
+training episodes are pooled; the validation steps are the held-out episodes of the first.
+The model's image size and number of camera views are read from the data. --init starts
+from a policy checkpoint's parameters and tokenizer (fresh optimizer and schedule).
 
 Training state is checkpointed with orbax under --out/state every --ckpt_every steps; a
 rerun with the same --out resumes from the latest one. Loss and per-dimension token
@@ -27,7 +33,11 @@ FLAGS = flags.FLAGS
 flags.DEFINE_enum("model", "vla", ["vla", "drafter"], "What to train: the target VLA, or an EAGLE drafter for the "
                   "target of --target (frozen).")
 flags.DEFINE_string("target", str(vla_policy.DEFAULT_CHECKPOINT), "--model=drafter: the target VLA checkpoint.")
-flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
+flags.DEFINE_list("demos", ["data/demos"], "Demonstration datasets (experiments.collect_demos), comma-separated; "
+                  "validation uses the held-out episodes of the first.")
+flags.DEFINE_string("init", "", "--model=vla: start from this policy checkpoint's parameters and tokenizer.")
+flags.DEFINE_enum("compute_dtype", "bfloat16", ["float32", "bfloat16"], "Activation dtype while training (parameters "
+                  "and optimizer state stay float32; the exported policy computes in float32).")
 flags.DEFINE_string("out", "runs/vla", "Run directory (training state, log).")
 flags.DEFINE_string("export", "", "If set, write the final parameters as a policy checkpoint here.")
 flags.DEFINE_integer("steps", 8000, "Optimizer steps.")
@@ -41,7 +51,6 @@ flags.DEFINE_integer("log_every", 200, "Steps between log lines.")
 flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoints.")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
-flags.DEFINE_integer("image_size", 64, "Camera resolution the demos were collected at.")
 flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
@@ -67,25 +76,50 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
     return state
 
 
-def _tables(model_cfg):
-    train_eps, val_eps = data.split_episodes(FLAGS.demos, FLAGS.holdout)
-    host = data.load_steps(FLAGS.demos, train_eps)
-    val_host = data.load_steps(FLAGS.demos, val_eps) if val_eps else host
-    if host.image.shape[1] != model_cfg.image_size:
-        raise app.UsageError(f"the model takes {model_cfg.image_size}px images but the demos hold "
-                             f"{host.image.shape[1]}px ones")
-    print(f"{host.size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out; "
-          f"device {jax.devices()[0]}")
-    return host, val_host
+def _tables():
+    """(train, validation) step tables on the host, and the (image size, views) of the data."""
+    parts, val_host = [], None
+    for i, path in enumerate(FLAGS.demos):
+        train_eps, val_eps = data.split_episodes(path, FLAGS.holdout)
+        parts.append(data.load_steps(path, train_eps))
+        if i == 0:
+            val_host = data.load_steps(path, val_eps) if val_eps else parts[0]
+        print(f"{path}: {parts[-1].size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out")
+    shapes = {p.image.shape[1:] for p in parts}
+    if len(shapes) != 1:
+        raise app.UsageError(f"the datasets of --demos hold images of different shapes: {sorted(shapes)}")
+    (h, w, _), = shapes
+    if w % h:
+        raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
+    host = data.StepTable(*(np.concatenate([getattr(p, f) for p in parts])
+                            for f in ("image", "proprio", "instruction", "action")))
+    print(f"{host.size} training steps in all; device {jax.devices()[0]}")
+    return host, val_host, h, w // h
 
 
 def train_vla(out: Path, cfg: train.TrainConfig):
-    model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, patch_size=FLAGS.patch_size, d_model=FLAGS.d_model,
-                              n_layers=FLAGS.n_layers, mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
-    host, val_host = _tables(model_cfg)
+    host, val_host, image_size, n_views = _tables()
+    init = None
+    if FLAGS.init:
+        try:
+            init = checkpoint.load_policy(FLAGS.init)
+        except ValueError as e:
+            raise app.UsageError(str(e)) from e
+        model_cfg = dataclasses.replace(init[1], dtype="float32")
+        if model_cfg.image_shape != host.image.shape[1:]:
+            raise app.UsageError(f"--init {FLAGS.init} takes images {model_cfg.image_shape}, the demos hold "
+                                 f"{host.image.shape[1:]}")
+    else:
+        model_cfg = vla.VLAConfig(image_size=image_size, n_views=n_views, patch_size=FLAGS.patch_size,
+                                  d_model=FLAGS.d_model, n_layers=FLAGS.n_layers,
+                                  mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
     mngr = checkpoint.manager(out / "state")
     state = train.init_state(model_cfg, cfg)
-    tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
+    if init is not None:
+        state = state.replace(params=init[0])
+        tok = init[2]
+    else:
+        tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
     if mngr.latest_step() is not None:
         state, meta = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
         if meta["config"] != dataclasses.asdict(model_cfg):
@@ -95,7 +129,8 @@ def train_vla(out: Path, cfg: train.TrainConfig):
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
-    step = train.make_train_step(model_cfg, cfg, tok)
+    run_cfg = dataclasses.replace(model_cfg, dtype=FLAGS.compute_dtype)
+    step = train.make_train_step(run_cfg, cfg, tok)
     eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
 
@@ -105,16 +140,20 @@ def train_vla(out: Path, cfg: train.TrainConfig):
                 "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
                 "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]]}
 
-    meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)})
+    meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
+                                                      "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype})
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
-        checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok, extra={"train": meta["train"]})
+        checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok,
+                               extra={k: meta[k] for k in ("train", "demos", "init", "compute_dtype")})
         print(f"policy checkpoint: {FLAGS.export}")
 
 
 def train_drafter(out: Path, cfg: train.TrainConfig):
     tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target)
-    host, val_host = _tables(model_cfg)
+    host, val_host, _, _ = _tables()
+    if host.image.shape[1:] != model_cfg.image_shape:
+        raise app.UsageError(f"the target takes images {model_cfg.image_shape}, the demos hold {host.image.shape[1:]}")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
     t0 = time.perf_counter()
     tokens, val_tokens = (train.greedy_tokens(tparams, model_cfg, t) for t in (table, val_table))
@@ -123,7 +162,7 @@ def train_drafter(out: Path, cfg: train.TrainConfig):
     mngr = checkpoint.manager(out / "state")
     state = train.init_drafter_state(model_cfg, cfg)
     meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
-            "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": str(FLAGS.demos)}
+            "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos)}
     if mngr.latest_step() is not None:
         state, old = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
         if old.get("target_fingerprint") != fp:

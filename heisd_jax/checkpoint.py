@@ -87,6 +87,16 @@ def _restore_params(path: Path, mngr, step, abstract):
     return params
 
 
+def read_config(path: str | Path) -> vla.VLAConfig:
+    """The model config of a policy checkpoint (its metadata only: cheap)."""
+    path = Path(path)
+    _, _, meta = _read_meta(path)
+    try:
+        return vla.VLAConfig(**meta["config"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise CheckpointError(f"checkpoint {path}: bad config metadata: {e}") from e
+
+
 def load_policy(path: str | Path):
     """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory."""
     path = Path(path)
@@ -128,7 +138,11 @@ def load_drafter(path: str | Path, target_cfg: vla.VLAConfig, target_params):
     mngr, step, meta = _read_meta(path)
     if meta.get("kind") != "drafter":
         raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a drafter")
-    if meta.get("config") != dataclasses.asdict(target_cfg):
+    try:
+        same_cfg = vla.VLAConfig(**meta.get("config", {})) == target_cfg
+    except (TypeError, ValueError):
+        same_cfg = False
+    if not same_cfg:
         raise CheckpointError(f"drafter {path} was trained for a target of another config")
     if meta.get("target_fingerprint") != fingerprint(target_params):
         raise CheckpointError(f"drafter {path} was trained for another target checkpoint (fingerprint "

@@ -89,7 +89,7 @@ def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: in
     on the values; acceptance, which does, is estimated online by `budget`)."""
     rng = np.random.default_rng(seed)
     obs = vla.Observation(
-        image=jnp.asarray(rng.integers(0, 256, (batch, cfg.image_size, cfg.image_size, 3)), jnp.uint8),
+        image=jnp.asarray(rng.integers(0, 256, (batch, *cfg.image_shape)), jnp.uint8),
         instruction=jnp.asarray(rng.integers(1, cfg.text_vocab, (batch, cfg.text_len)), jnp.int32),
         proprio=jnp.asarray(rng.normal(size=(batch, cfg.proprio_dim)), jnp.float32))
     cand = jnp.asarray(rng.integers(0, N_BINS, (batch, n_candidates, ACTION_DIM)) + cfg.first_action_id, jnp.int32)

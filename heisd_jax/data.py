@@ -54,22 +54,28 @@ def split_episodes(path: str, holdout: float, seed: int = 0) -> tuple[list[int],
     return sorted(order[k:].tolist()), sorted(order[:k].tolist())
 
 
-def random_shift(images: jnp.ndarray, key: jax.Array, max_shift: int) -> jnp.ndarray:
+def random_shift(images: jnp.ndarray, key: jax.Array, max_shift: int, n_views: int = 1) -> jnp.ndarray:
     """Each image [B, H, W, C] translated by its own random integer offset in
-    [-max_shift, max_shift]^2, borders replicated (the random-shift augmentation of DrQ)."""
+    [-max_shift, max_shift]^2, borders replicated (the random-shift augmentation of DrQ).
+    An image of `n_views` views tiled along W has each view shifted on its own."""
     if max_shift == 0:
         return images
-    b, h, w, _ = images.shape
+    b, h, w, c = images.shape
+    if n_views > 1:
+        views = images.reshape(b, h, n_views, w // n_views, c).transpose(0, 2, 1, 3, 4).reshape(b * n_views, h, w // n_views, c)
+        views = random_shift(views, key, max_shift)
+        return views.reshape(b, n_views, h, w // n_views, c).transpose(0, 2, 1, 3, 4).reshape(b, h, w, c)
     padded = jnp.pad(images, ((0, 0), (max_shift, max_shift), (max_shift, max_shift), (0, 0)), mode="edge")
     offsets = jax.random.randint(key, (b, 2), 0, 2 * max_shift + 1)
     return jax.vmap(lambda im, o: jax.lax.dynamic_slice(im, (o[0], o[1], 0), (h, w, im.shape[-1])))(padded, offsets)
 
 
-def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokenizer, image_shift: int = 0):
-    """A random minibatch: (vla.Observation, action token ids [B, 7]), images optionally
-    randomly shifted by up to `image_shift` pixels."""
+def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokenizer, image_shift: int = 0,
+                 n_views: int = 1):
+    """A random minibatch: (vla.Observation, action token ids [B, 7]), each view of the
+    images optionally randomly shifted by up to `image_shift` pixels."""
     k_idx, k_shift = jax.random.split(key)
     i = jax.random.randint(k_idx, (batch,), 0, table.size)
-    obs = vla.Observation(image=random_shift(table.image[i], k_shift, image_shift), instruction=table.instruction[i],
+    obs = vla.Observation(image=random_shift(table.image[i], k_shift, image_shift, n_views), instruction=table.instruction[i],
                           proprio=table.proprio[i])
     return obs, tok.encode(table.action[i])

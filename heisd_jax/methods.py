@@ -16,8 +16,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs import expert, tasks as tasks_lib
-from envs.env import TabletopEnv
+from envs import camera, expert, tasks as tasks_lib
+from envs.env import EnvConfig, TabletopEnv
 from envs.rollout import Policy
 from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, spec_decode, vla,
                        vla_policy)
@@ -27,9 +27,9 @@ DTYPES = ("float32", "bfloat16")
 
 def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
     params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
-    if cfg.image_size != env.config.camera.width or cfg.image_size != env.config.camera.height:
-        raise ValueError(f"checkpoint {checkpoint_path} expects {cfg.image_size}px images, the env renders "
-                         f"{env.config.camera.width}x{env.config.camera.height}")
+    if cfg.image_shape != env.config.camera.image_shape:
+        raise ValueError(f"checkpoint {checkpoint_path} expects images of shape {cfg.image_shape} "
+                         f"({cfg.n_views} view(s)), the env renders {env.config.camera.image_shape}")
     return params, cfg, tok
 
 
@@ -228,6 +228,19 @@ METHODS: dict[str, Callable[..., Policy]] = {
     "heisd": _hybrid_method("heisd"),
 }
 USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
+
+
+def env_config(name: str, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT) -> EnvConfig:
+    """The env settings method `name` runs under: the camera views and size its checkpoint
+    was trained on (read from the checkpoint's metadata), no rendering for the expert."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
+    if not USES_CAMERA.get(name, True):
+        return EnvConfig(render=False)
+    cfg = checkpoint.read_config(checkpoint_path)
+    if cfg.n_views > len(camera.VIEWS):
+        raise ValueError(f"checkpoint {checkpoint_path} expects {cfg.n_views} views; the env has {camera.VIEWS}")
+    return EnvConfig(camera=camera.CameraConfig(height=cfg.image_size, width=cfg.image_size, wrist=cfg.n_views > 1))
 
 
 CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "drafter_path"),

@@ -94,7 +94,8 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
 
     @jax.jit
     def train_step(state: TrainState, table: data.StepTable, key: jax.Array):
-        obs, tokens = data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok, cfg.image_shift)
+        obs, tokens = data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok, cfg.image_shift,
+                                        model_cfg.n_views)
         (loss, metrics), grads = jax.value_and_grad(action_loss, has_aux=True)(
             state.params, model_cfg, obs, tokens, cfg.label_sigma_bins)
         updates, opt_state = opt.update(grads, state.opt_state, state.params)
@@ -144,7 +145,7 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig):
     def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
         k_idx, k_shift = jax.random.split(jax.random.fold_in(key, state.step))
         i = jax.random.randint(k_idx, (cfg.batch_size,), 0, table.size)
-        obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift),
+        obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift, model_cfg.n_views),
                               instruction=table.instruction[i], proprio=table.proprio[i])
         (loss, metrics), grads = jax.value_and_grad(drafter.loss, has_aux=True)(state.params, tparams, model_cfg, obs,
                                                                                 tokens[i])

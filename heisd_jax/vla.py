@@ -30,11 +30,13 @@ from envs import language
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 NEG_INF = -1e9
+DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
 @dataclasses.dataclass(frozen=True)
 class VLAConfig:
-    image_size: int = 64
+    image_size: int = 64  # of each (square) view
+    n_views: int = 1  # views tiled left to right in the image (envs.camera: agent view, wrist)
     patch_size: int = 8
     vision_layers: int = 2
     text_len: int = language.MAX_INSTRUCTION_TOKENS
@@ -44,13 +46,18 @@ class VLAConfig:
     n_layers: int = 8
     n_heads: int = 8
     mlp_dim: int = 688
-    cache_slots: int = 160  # prompt + 7 actions + the largest draft tree, with room to spare
+    cache_slots: int = 0  # 0: prompt_len + DRAFT_SLOTS (7 actions + the largest draft tree, with room to spare)
     rope_base: float = 10000.0
     dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
 
     @property
     def n_patches(self) -> int:
-        return (self.image_size // self.patch_size) ** 2
+        return self.n_views * (self.image_size // self.patch_size) ** 2
+
+    @property
+    def image_shape(self) -> tuple[int, int, int]:
+        """[H, W, 3] of one observation's image: the views side by side."""
+        return (self.image_size, self.n_views * self.image_size, 3)
 
     @property
     def prompt_len(self) -> int:
@@ -65,10 +72,14 @@ class VLAConfig:
         return self.text_vocab
 
     def __post_init__(self):
+        if self.n_views < 1:
+            raise ValueError(f"n_views must be >= 1, got {self.n_views}")
         if self.image_size % self.patch_size:
             raise ValueError(f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}")
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
             raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
+        if self.cache_slots == 0:
+            object.__setattr__(self, "cache_slots", self.prompt_len + DRAFT_SLOTS)
         if self.cache_slots < self.prompt_len + ACTION_DIM:
             raise ValueError(f"cache_slots {self.cache_slots} < prompt {self.prompt_len} + {ACTION_DIM} actions")
 
@@ -90,7 +101,7 @@ class Block:
 
 @struct.dataclass
 class Observation:
-    image: jnp.ndarray  # [B, H, W, 3] uint8
+    image: jnp.ndarray  # [B, *VLAConfig.image_shape] uint8
     instruction: jnp.ndarray  # [B, text_len] int32 (envs.language ids, PAD = 0)
     proprio: jnp.ndarray  # [B, proprio_dim] float32
 
@@ -158,7 +169,8 @@ class DecoderBlock(nn.Module):
 
 
 class VisionEncoder(nn.Module):
-    """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, n_patches, D]."""
+    """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, n_patches, D]. Tiled
+    views are patchified alike; the learned position embedding tells them apart."""
 
     cfg: VLAConfig
 
@@ -239,7 +251,7 @@ def prompt_key_mask(cfg: VLAConfig, instruction: jnp.ndarray) -> jnp.ndarray:
 
 
 def init_params(cfg: VLAConfig, key: jax.Array) -> dict:
-    obs = Observation(image=jnp.zeros((1, cfg.image_size, cfg.image_size, 3), jnp.uint8),
+    obs = Observation(image=jnp.zeros((1, *cfg.image_shape), jnp.uint8),
                       instruction=jnp.zeros((1, cfg.text_len), jnp.int32), proprio=jnp.zeros((1, cfg.proprio_dim)))
     return VLA(cfg).init(key, obs, jnp.zeros((1, ACTION_DIM), jnp.int32))["params"]
 

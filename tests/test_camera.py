@@ -14,7 +14,8 @@ from envs.env import EnvConfig, TabletopEnv
 def rendered():
     env = TabletopEnv(config=EnvConfig(render=True))
     state = jax.jit(env.reset)(env.initial_state_keys([0], [0])[0], 0)
-    render = jax.jit(lambda d, rgb: camera.render(env.model, d, env.ids.camera, rgb, env.config.camera))
+    cam = env.config.camera
+    render = jax.jit(lambda d, rgb: camera.render_views(env.mj_model, env.model, d, rgb, cam))
     return env, state, render
 
 

@@ -198,7 +198,7 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     from envs.env import TabletopEnv
     from heisd_jax import methods
 
-    env = TabletopEnv(tasks.get_tasks("goal"))
+    env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
     policy = methods.make_policy("heisd", env, budget="fixed", top_k=4, depth=2, total_tokens=8)
     assert policy.name == "heisd" and policy.params["store"].size > 100_000
     with pytest.raises(ValueError, match="pass batch_size"):  # budget=auto (the default) measures costs at it

@@ -1,0 +1,255 @@
+"""Rebuilds the whole target stack from nothing, resumably: expert demonstrations -> a first
+VLA trained on them -> DAgger rounds (the VLA drives, the expert labels, the aggregate is
+trained on) -> the closed-loop evaluation -> the drafter -> the retrieval datastore -> the
+boundary calibration; optionally installs the results as the shipped checkpoints.
+
+  python -m experiments.build_target --work=runs/target             # on one GPU
+  python -m experiments.build_target --work=runs/target --install   # ... and copy to checkpoints/
+
+Each stage is one of the project's own commands (collect_demos, train, evaluate,
+build_datastore, calibrate_boundary), run as a subprocess with its output in
+--work/logs/<stage>.log. A stage is done when its output exists (datasets and checkpoints
+are published atomically by those commands), so rerunning the same command after an
+interruption skips what is done and resumes the stage that was cut off (training resumes
+from its last orbax checkpoint). --work/build.json records the settings (a rerun with
+other settings is refused) and, per stage, its wall time and the figures it printed (DAgger
+success of the policy that drove, held-out token accuracy, evaluation success).
+A persistent JAX compilation cache under --work makes recompiles of a resumed or repeated
+stage cheap.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from absl import app, flags
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, logs, build.json).")
+flags.DEFINE_integer("demo_episodes", 75, "Expert episodes attempted per task.")
+flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
+flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
+flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
+flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's action per step.")
+flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy.")
+flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning.")
+flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
+flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
+flags.DEFINE_integer("d_model", 256, "Decoder width.")
+flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
+flags.DEFINE_integer("drafter_steps", 4000, "Drafter optimizer steps.")
+flags.DEFINE_integer("num_envs", 1000, "Parallel envs for collection and evaluation.")
+flags.DEFINE_integer("eval_episodes", 50, "Evaluation episodes per task (the fixed evaluation states).")
+flags.DEFINE_string("suites", "all", "Suites to build on.")
+flags.DEFINE_list("tasks", [], "Only these tasks (smoke tests).")
+flags.DEFINE_list("skip", [], "Stages to skip: eval, drafter, datastore, calibration.")
+flags.DEFINE_bool("install", False, "Copy the final target, drafter and datastore into checkpoints/ at the end.")
+flags.DEFINE_integer("image_size", 64, "Camera resolution of each view.")
+
+SKIPPABLE = ("eval", "drafter", "datastore", "calibration")
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclasses.dataclass
+class Stage:
+    name: str
+    args: list[str]  # python -m experiments.<module> ...
+    output: Path  # what the stage writes
+    figures: dict[str, str] = dataclasses.field(default_factory=dict)  # name -> regex on the stage's output
+    expected_episodes: int = 0  # an evaluation: complete once its results hold this many episodes
+
+    def done(self) -> bool:
+        if not self.output.exists():
+            return False
+        if self.expected_episodes:  # evaluate writes its results file after every batch
+            results = json.loads(self.output.read_text())["episodes"]
+            return sum(len(v) for v in results.values()) >= self.expected_episodes
+        if self.args[0] == "train":  # an orbax checkpoint directory: complete once its step is renamed in
+            return (self.output / "0").is_dir()
+        return True  # datasets, datastores and boundary files are published whole
+
+
+def _policy(w: Path, r: int) -> Path:
+    return w / f"vla{r}"
+
+
+def plan(w: Path) -> list[Stage]:
+    """The stages, in order, for the current flags."""
+    scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
+    model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
+             "--label_sigma_bins=2", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
+    acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
+    stages = [Stage("demos", ["collect_demos", *scope, f"--episodes_per_task={FLAGS.demo_episodes}",
+                              f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
+                              f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
+                    {"kept": r"kept (\d+/\d+)"}),
+              Stage("train0", ["train", "--model=vla", f"--demos={w / 'demos'}", f"--out={w / 'run0'}",
+                               f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", "--warmup_steps=300", *model,
+                               f"--export={_policy(w, 0)}"], _policy(w, 0), acc)]
+    data = [str(w / "demos")]
+    for r in range(1, FLAGS.rounds + 1):
+        data.append(str(w / f"dagger{r}"))
+        stages.append(Stage(f"dagger{r}", ["collect_demos", *scope, f"--policy={_policy(w, r - 1)}",
+                                           f"--beta={FLAGS.beta}", f"--episodes_per_task={FLAGS.dagger_episodes}",
+                                           f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
+                                           "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
+                            {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of"}))
+        stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
+                                          f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
+                                          f"--lr={FLAGS.lr / 2}", "--warmup_steps=200", *model,
+                                          f"--export={_policy(w, r)}"], _policy(w, r), acc))
+    final = _policy(w, FLAGS.rounds)
+    from envs import tasks as tasks_lib  # noqa: PLC0415
+
+    n_tasks = len(tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None))
+    if "eval" not in FLAGS.skip:
+        stages.append(Stage("eval", ["evaluate", "--method=ar", f"--checkpoint={final}", *scope,
+                                     f"--episodes={FLAGS.eval_episodes}", f"--num_envs={FLAGS.num_envs}",
+                                     f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
+                            {f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")},
+                            expected_episodes=n_tasks * FLAGS.eval_episodes))
+    if "drafter" not in FLAGS.skip:
+        stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
+                                        f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
+                                        f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", "--warmup_steps=200",
+                                        "--log_every=500", "--ckpt_every=1000", f"--export={w / 'drafter'}"],
+                            w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
+    if "datastore" not in FLAGS.skip:
+        stages.append(Stage("datastore", ["build_datastore", f"--demos={w / 'demos'}", f"--checkpoint={final}",
+                                          f"--out={w / 'datastore'}"], w / "datastore"))
+    if "calibration" not in FLAGS.skip and "datastore" not in FLAGS.skip and "drafter" not in FLAGS.skip:
+        stages.append(Stage("calibration", ["calibrate_boundary", f"--demos={w / 'demos'}",
+                                            f"--datastore={w / 'datastore'}", f"--checkpoint={final}",
+                                            f"--drafter={w / 'drafter'}"], w / "datastore" / "boundary.json"))
+    return stages
+
+
+def _settings() -> dict:
+    keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
+            "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size")
+    return {k: getattr(FLAGS, k) for k in keys}
+
+
+def _load_state(path: Path) -> dict:
+    if not path.exists():
+        return {"settings": _settings(), "stages": {}}
+    state = json.loads(path.read_text())
+    if state["settings"] != _settings():
+        diff = {k: (state["settings"].get(k), v) for k, v in _settings().items() if state["settings"].get(k) != v}
+        raise app.UsageError(f"{path.parent} was built with other settings (was, now): {diff}; use another --work")
+    return state
+
+
+def _write_state(path: Path, state: dict) -> None:
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(state, indent=1))
+    os.replace(tmp, path)
+
+
+def run_stage(stage: Stage, log_path: Path, env: dict, console: Console) -> dict:
+    """Runs one stage, its output appended to log_path and echoed; returns its figures."""
+    cmd = [sys.executable, "-m", f"experiments.{stage.args[0]}", *stage.args[1:]]
+    figures, text = {}, []
+    with open(log_path, "a") as log:
+        log.write(f"$ {' '.join(cmd)}\n")
+        proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        for line in proc.stdout:
+            log.write(line)
+            log.flush()
+            text.append(line)
+            if line.startswith("{") or "success" in line or "kept" in line or "DAgger" in line or "Error" in line:
+                console.print(f"  [dim]{stage.name}[/dim] {line.rstrip()[:200]}", markup=True, highlight=False)
+        rc = proc.wait()
+    if rc != 0:
+        raise RuntimeError(f"stage {stage.name} failed (exit {rc}); its log: {log_path}\n{''.join(text[-15:])}")
+    joined = "".join(text)
+    for name, pattern in stage.figures.items():
+        found = re.findall(pattern, joined)
+        if found:
+            figures[name] = found[-1]
+    return figures
+
+
+def install(w: Path) -> None:
+    """Copies the final target, drafter and datastore over checkpoints/ (each replaced whole,
+    via a temporary sibling, so an interrupted copy never leaves a half checkpoint)."""
+    pairs = [(_policy(w, FLAGS.rounds), ROOT / "checkpoints" / "vla"), (w / "drafter", ROOT / "checkpoints" / "drafter"),
+             (w / "datastore", ROOT / "checkpoints" / "datastore")]
+    for src, dst in pairs:
+        if not src.exists():
+            raise RuntimeError(f"cannot install {dst.name}: {src} does not exist")
+    for src, dst in pairs:
+        tmp = dst.with_name(f".{dst.name}.installing")
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.copytree(src, tmp)
+        old = dst.with_name(f".{dst.name}.old")
+        shutil.rmtree(old, ignore_errors=True)
+        if dst.exists():
+            os.replace(dst, old)
+        os.replace(tmp, dst)
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def main(argv):
+    del argv
+    bad = sorted(set(FLAGS.skip) - set(SKIPPABLE))
+    if bad:
+        raise app.UsageError(f"--skip: unknown stages {bad}; valid: {', '.join(SKIPPABLE)}")
+    for name in ("demo_episodes", "dagger_episodes", "steps", "dagger_steps", "drafter_steps", "num_envs",
+                 "eval_episodes", "batch_size"):
+        if getattr(FLAGS, name) < 1:
+            raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
+    if FLAGS.rounds < 0 or not 0 <= FLAGS.beta <= 1:
+        raise app.UsageError("--rounds must be >= 0 and --beta in [0, 1]")
+    from envs import tasks as tasks_lib  # noqa: PLC0415
+
+    try:
+        tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if FLAGS.install and FLAGS.skip:
+        raise app.UsageError("--install needs every stage (drop --skip)")
+    w = Path(FLAGS.work).absolute()
+    (w / "logs").mkdir(parents=True, exist_ok=True)
+    state_path = w / "build.json"
+    state = _load_state(state_path)
+    _write_state(state_path, state)
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    env.setdefault("JAX_COMPILATION_CACHE_DIR", str(w / "jax_cache"))
+    console = Console()
+    stages = plan(w)
+    t_all = time.perf_counter()
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} stages"),
+                  TimeElapsedColumn(), console=console) as bar:
+        job = bar.add_task("building", total=len(stages))
+        for stage in stages:
+            if stage.done():
+                bar.update(job, advance=1, description=f"{stage.name}: done")
+                continue
+            bar.update(job, description=f"{stage.name}: running")
+            t0 = time.perf_counter()
+            figures = run_stage(stage, w / "logs" / f"{stage.name}.log", env, console)
+            if not stage.done():
+                raise RuntimeError(f"stage {stage.name} ended without completing {stage.output}")
+            state["stages"][stage.name] = {"seconds": round(time.perf_counter() - t0, 1), **figures}
+            _write_state(state_path, state)
+            console.print(f"[bold]{stage.name}[/bold] done in {time.perf_counter() - t0:.0f}s {figures}")
+            bar.update(job, advance=1)
+    if FLAGS.install:
+        install(w)
+        console.print("installed into checkpoints/: vla, drafter, datastore")
+    console.print(f"built in {time.perf_counter() - t_all:.0f}s (this invocation); stages: {json.dumps(state['stages'])}")
+
+
+if __name__ == "__main__":
+    app.run(main)
