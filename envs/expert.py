@@ -210,6 +210,15 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     # A dropped object (not near the TCP while it should be held) sends the expert back.
     dropped = jnp.isin(phase, jnp.array([LIFT, CARRY, LOWER])) & (jnp.linalg.norm(held) > 0.05)
     next_phase = jnp.where(dropped, APPROACH, next_phase)
+    # States another actor (a learner, under DAgger) brought about: the object already held
+    # between the jaws (grasped without this expert's descend) goes on to LIFT; a goal that
+    # already holds while the expert is still on its way to it is done.
+    in_hand = ((jnp.linalg.norm(held[:2]) < 0.02) & (jnp.abs(held[2] - 0.004) < 0.025)
+               & (state.kin.gripper > 0.02) & (state.kin.gripper < 0.05))
+    grabbed = jnp.isin(phase, jnp.array([APPROACH, DESCEND])) & in_hand & (kind != tasks_lib.GOAL_KINDS.index("push_to_zone"))
+    next_phase = jnp.where(grabbed, LIFT, next_phase)
+    already = jnp.isin(phase, jnp.array([APPROACH, DESCEND, PUSH_APPROACH, PUSH_DESCEND])) & goal_done & ~in_hand
+    next_phase = jnp.where(already, DONE, next_phase)
     # An episode still running in DONE has a goal undone (e.g. a knocked-over stack): redo
     # the first unsatisfied goal.
     redo = (phase == DONE) & (es.timer >= 3)

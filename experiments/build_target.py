@@ -41,7 +41,8 @@ flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
 flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's action per step.")
-flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy.")
+flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy (with --start: of training it further on "
+                     "the demonstrations; 0: use it as it is).")
 flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning.")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
@@ -55,6 +56,8 @@ flags.DEFINE_list("tasks", [], "Only these tasks (smoke tests).")
 flags.DEFINE_list("skip", [], "Stages to skip: eval, drafter, datastore, calibration.")
 flags.DEFINE_bool("install", False, "Copy the final target, drafter and datastore into checkpoints/ at the end.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view.")
+flags.DEFINE_string("start", "", "Start the DAgger rounds from this policy checkpoint instead of training a first "
+                    "policy on the demonstrations (continuing an earlier build).")
 
 SKIPPABLE = ("eval", "drafter", "datastore", "calibration")
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,6 +83,8 @@ class Stage:
 
 
 def _policy(w: Path, r: int) -> Path:
+    if r == 0 and FLAGS.start and not FLAGS.steps:
+        return Path(FLAGS.start).absolute()
     return w / f"vla{r}"
 
 
@@ -94,8 +99,13 @@ def plan(w: Path) -> list[Stage]:
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
                     {"kept": r"kept (\d+/\d+)"}),
               Stage("train0", ["train", "--model=vla", f"--demos={w / 'demos'}", f"--out={w / 'run0'}",
-                               f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", "--warmup_steps=300", *model,
+                               f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", f"--warmup_steps={min(300, FLAGS.steps // 4)}", *model,
                                f"--export={_policy(w, 0)}"], _policy(w, 0), acc)]
+    if FLAGS.start:  # round 0 is the given policy, trained on for --steps more (none: as it is)
+        if FLAGS.steps:
+            stages[-1].args += [f"--init={FLAGS.start}"]
+        else:
+            stages.pop()
     data = [str(w / "demos")]
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
@@ -106,7 +116,7 @@ def plan(w: Path) -> list[Stage]:
                             {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of"}))
         stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
                                           f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
-                                          f"--lr={FLAGS.lr / 2}", "--warmup_steps=200", *model,
+                                          f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
                                           f"--export={_policy(w, r)}"], _policy(w, r), acc))
     final = _policy(w, FLAGS.rounds)
     from envs import tasks as tasks_lib  # noqa: PLC0415
@@ -121,7 +131,7 @@ def plan(w: Path) -> list[Stage]:
     if "drafter" not in FLAGS.skip:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
                                         f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
-                                        f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", "--warmup_steps=200",
+                                        f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
                                         "--log_every=500", "--ckpt_every=1000", f"--export={w / 'drafter'}"],
                             w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
     if "datastore" not in FLAGS.skip:
@@ -136,7 +146,7 @@ def plan(w: Path) -> list[Stage]:
 
 def _settings() -> dict:
     keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
-            "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size")
+            "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size", "start")
     return {k: getattr(FLAGS, k) for k in keys}
 
 
@@ -205,7 +215,9 @@ def main(argv):
     bad = sorted(set(FLAGS.skip) - set(SKIPPABLE))
     if bad:
         raise app.UsageError(f"--skip: unknown stages {bad}; valid: {', '.join(SKIPPABLE)}")
-    for name in ("demo_episodes", "dagger_episodes", "steps", "dagger_steps", "drafter_steps", "num_envs",
+    if FLAGS.steps < (0 if FLAGS.start else 1):
+        raise app.UsageError(f"--steps must be >= 1 (>= 0 with --start), got {FLAGS.steps}")
+    for name in ("demo_episodes", "dagger_episodes", "dagger_steps", "drafter_steps", "num_envs",
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
@@ -217,6 +229,8 @@ def main(argv):
         tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
+    if FLAGS.start and not (Path(FLAGS.start) / "0").is_dir():
+        raise app.UsageError(f"--start {FLAGS.start}: no policy checkpoint there")
     if FLAGS.install and FLAGS.skip:
         raise app.UsageError("--install needs every stage (drop --skip)")
     w = Path(FLAGS.work).absolute()

@@ -13,6 +13,7 @@ where the policy goes wrong are the point). The dataset appears at --out only on
 
 from __future__ import annotations
 
+import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -82,8 +83,11 @@ def main(argv):
     pairs = [(t, FLAGS.first_episode + e) for t in range(len(task_list)) for e in range(FLAGS.episodes_per_task)]
     n_steps = int(max(t.max_steps for t in task_list))
     if dagger:
-        record = jax.jit(lambda k, t: rollout.record_episodes(env, learner, k, t, n_steps, exec_noise=FLAGS.action_noise,
-                                                              teacher=policy, beta=FLAGS.beta))
+        # The policy's parameters are an argument, not constants baked into the program.
+        run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t, n_steps,
+                                                              exec_noise=FLAGS.action_noise, teacher=policy,
+                                                              beta=FLAGS.beta))
+        record = lambda k, t: run(learner.params, k, t)  # noqa: E731
     else:
         record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps, exec_noise=FLAGS.action_noise))
     agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
@@ -124,7 +128,7 @@ def main(argv):
     if dagger:
         n_succ = sum(r.get("success", False) for r in demos.DemoDataset(path).episodes)
         print(f"DAgger: {kept} episodes, policy success {n_succ / max(kept, 1):.1%} (beta {FLAGS.beta}); policy action "
-              f"within one bin of the expert's in all 7 dims on {agree[0] / max(agree[1], 1):.1%} of {agree[1]} steps "
+              f"within 1/128 of the expert's in all 7 dims on {agree[0] / max(agree[1], 1):.1%} of {agree[1]} steps "
               f"-> {path}")
     else:
         print(f"kept {kept}/{len(pairs)} successful episodes ({kept / len(pairs):.1%}) -> {path}")

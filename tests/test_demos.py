@@ -77,7 +77,8 @@ def test_collect_demos_end_to_end(tmp_path):
     assert ds.meta["n_episodes"] == 2 and ds.meta["split"] == "train"
     ep = ds.episode(0)
     n = ds.episodes[0]["length"]
-    assert ep["image"].shape == (n, 16, 16, 3) and ep["action"].shape == (n, 7)
+    assert ep["image"].shape == (n, 16, 32, 3) and ep["action"].shape == (n, 7)  # agent view | wrist view
+    assert ds.meta["views"] == ["agentview", "wrist"]
     assert np.all(np.abs(ep["action"]) <= 1.0)
     assert ep["action"][-1, 6] == 1.0  # holding the cylinder up: jaw closed
     with open(out / "meta.json") as f:

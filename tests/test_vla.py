@@ -118,3 +118,23 @@ def test_config_rejects_bad_shapes():
         vla.VLAConfig(image_size=30, patch_size=8)
     with pytest.raises(ValueError, match="cache_slots"):
         vla.VLAConfig(cache_slots=20)
+
+
+def test_tiled_views_give_one_patch_grid_per_view():
+    one, two = vla.VLAConfig(image_size=16, patch_size=8), vla.VLAConfig(image_size=16, patch_size=8, n_views=2)
+    assert two.image_shape == (16, 32, 3) and two.n_patches == 2 * one.n_patches
+    assert two.prompt_len == one.prompt_len + one.n_patches
+    assert two.cache_slots - two.prompt_len == one.cache_slots - one.prompt_len == vla.DRAFT_SLOTS
+    with pytest.raises(ValueError, match="n_views"):
+        vla.VLAConfig(n_views=0)
+
+
+def test_random_shift_moves_each_view_on_its_own():
+    from heisd_jax import data
+
+    img = np.zeros((4, 8, 16, 3), np.uint8)
+    img[:, :, 8:] = 255  # view 0 black, view 1 white
+    out = np.asarray(data.random_shift(jnp.asarray(img), jax.random.PRNGKey(0), 3, n_views=2))
+    assert (out[:, :, :8] == 0).all() and (out[:, :, 8:] == 255).all()  # no view bleeds into the other
+    whole = np.asarray(data.random_shift(jnp.asarray(img), jax.random.PRNGKey(0), 3))
+    assert not ((whole[:, :, :8] == 0).all() and (whole[:, :, 8:] == 255).all())

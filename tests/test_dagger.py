@@ -1,0 +1,61 @@
+"""DAgger collection: the teacher labels the states the policy visits; beta mixes who acts."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from absl.testing import flagsaver
+
+from envs import expert, rollout
+from envs.env import EnvConfig, TabletopEnv
+
+N_STEPS = 12
+TASKS = np.array([0, 25], np.int32)
+
+
+def _still(env):
+    """A learner that never moves (and keeps the jaw open)."""
+    return rollout.per_env("still", lambda s: jnp.zeros(()),
+                           lambda s, p, k: (jnp.zeros(7).at[6].set(-1.0), p))
+
+
+@pytest.fixture(scope="module")
+def runs():
+    env = TabletopEnv(config=EnvConfig(render=False))
+    teacher, learner = expert.policy(env), _still(env)
+    keys = env.initial_state_keys(TASKS, [0, 1], split="train")
+    dagger = jax.jit(lambda beta: rollout.record_episodes(env, learner, keys, TASKS, N_STEPS, teacher=teacher,
+                                                          beta=beta)[1])
+    plain = jax.jit(lambda: rollout.record_episodes(env, teacher, keys, TASKS, N_STEPS)[1])
+    return dagger(1.0), dagger(0.0), plain()
+
+
+def test_beta_one_is_the_teachers_own_rollout(runs):
+    at_one, _, own = runs
+    for field in ("proprio", "action", "ee_vel"):  # two programs: equal up to float rounding
+        np.testing.assert_allclose(at_one[field], own[field], atol=1e-4)
+    np.testing.assert_array_equal(at_one["policy_action"][..., 6], -1.0)  # the learner's own, recorded beside
+
+
+def test_beta_zero_labels_the_learners_states(runs):
+    _, at_zero, own = runs
+    # The arm does not move under the still learner (only the servos settle) ...
+    drift = np.abs(at_zero["proprio"][-1, :, :3] - at_zero["proprio"][0, :, :3]).max()
+    assert drift < 0.01, drift
+    # ... while the labels are the expert's commands to move, away from the expert's own states.
+    assert np.abs(at_zero["action"][:, :, :3]).max() > 0.5
+    assert np.abs(own["proprio"][-1, :, :3] - at_zero["proprio"][-1, :, :3]).max() > 0.02
+
+
+def test_collect_demos_rejects_beta_without_policy(tmp_path):
+    from absl import app, flags
+
+    from experiments import collect_demos
+
+    flags.FLAGS.mark_as_parsed()
+    with flagsaver.flagsaver(beta=0.5, out=str(tmp_path / "d")), pytest.raises(app.UsageError, match="--policy"):
+        collect_demos.main([])
+    with flagsaver.flagsaver(beta=1.5, policy="x", out=str(tmp_path / "d")), pytest.raises(app.UsageError,
+                                                                                          match=r"\[0, 1\]"):
+        collect_demos.main([])
+    assert not (tmp_path / "d").exists()
