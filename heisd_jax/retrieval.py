@@ -72,16 +72,18 @@ def episode_history(actions: np.ndarray, history: int) -> np.ndarray:
 
 def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
     """episodes: iterable of (global task index, actions [T, 7], proprio [T, 8])."""
-    keys, tokens, task = [], [], []
-    for task_id, actions, proprio in episodes:
-        keys.append(np.asarray(make_keys(spec, tok, episode_history(actions, spec.history), proprio)))
-        tokens.append(np.asarray(tok.encode(jnp.asarray(actions))))
+    hist, acts, props, task = [], [], [], []
+    for task_id, actions, proprio in episodes:  # host-side gathering; one device call below
+        hist.append(episode_history(np.asarray(actions, np.float32), spec.history))
+        acts.append(np.asarray(actions, np.float32))
+        props.append(np.asarray(proprio, np.float32))
         task.append(np.full(len(actions), task_id, np.int32))
-    if not keys:
+    if not acts:
         raise ValueError("no episodes to build a datastore from")
-    k = np.concatenate(keys).astype(np.float32)
+    k = np.asarray(make_keys(spec, tok, np.concatenate(hist), np.concatenate(props)), np.float32)
+    tokens = np.asarray(tok.encode(jnp.asarray(np.concatenate(acts))))
     return Datastore(keys=jnp.asarray(k), sq_norms=jnp.asarray((k * k).sum(-1)),
-                     tokens=jnp.asarray(np.concatenate(tokens), jnp.int32), task=jnp.asarray(np.concatenate(task)))
+                     tokens=jnp.asarray(tokens, jnp.int32), task=jnp.asarray(np.concatenate(task)))
 
 
 def subsample(store: Datastore, stride: int) -> Datastore:
@@ -111,13 +113,15 @@ def demo_features(path: str | os.PathLike, episodes: list[int] | None = None) ->
     from heisd_jax import kinematics  # noqa: PLC0415
 
     ds = demos.DemoDataset(path)
-    out = []
-    for i in range(len(ds)) if episodes is None else episodes:
+    cols = {k: [] for k in ("ee_vel", "ee_ang_vel", "ee_acc", "gripper_vel", "prev")}
+    for i in range(len(ds)) if episodes is None else episodes:  # gathered on the host, one device call
         ep = ds.episode(i)
         v = np.asarray(ep["ee_vel"], np.float32)
-        prev = np.concatenate([np.zeros((1, 3), np.float32), v[:-1]])
-        out.append(np.asarray(kinematics.features(v, ep["ee_ang_vel"], ep["ee_acc"], ep["gripper_vel"], prev)))
-    return np.concatenate(out)
+        cols["prev"].append(np.concatenate([np.zeros((1, 3), np.float32), v[:-1]]))
+        for k in ("ee_vel", "ee_ang_vel", "ee_acc", "gripper_vel"):
+            cols[k].append(np.asarray(ep[k], np.float32))
+    c = {k: np.concatenate(v) for k, v in cols.items()}
+    return np.asarray(kinematics.features(c["ee_vel"], c["ee_ang_vel"], c["ee_acc"], c["gripper_vel"], c["prev"]))
 
 
 def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenizer,

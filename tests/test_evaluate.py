@@ -9,6 +9,7 @@ import jax
 import numpy as np
 import pytest
 
+from envs.env import EnvConfig, TabletopEnv
 from heisd_jax import checkpoint, methods, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 
@@ -83,12 +84,13 @@ def test_ar_policy_acts_on_a_batch_like_ar_decode(tiny_ckpt, compiled):
 def test_shipped_drafter_policy_in_strict_mode_acts_like_ar(compiled):
     """The registered `drafter` method loads the shipped target + drafter pair and, with
     strict acceptance, emits the AR policy's actions."""
-    env = compiled.env
+    cam = methods.env_config("drafter").camera  # the views the shipped target was trained on
+    env = TabletopEnv(config=EnvConfig(camera=cam, render=False))
     spec_pol = methods.make_policy("drafter", env, top_k=4, depth=3, total_tokens=12)
     ar_pol = methods.make_policy("ar", env)
     state = compiled.start([0, 11])
     state = state.replace(obs=state.obs.replace(image=jax.random.randint(
-        jax.random.PRNGKey(1), (2, 64, 64, 3), 0, 255).astype(np.uint8)))
+        jax.random.PRNGKey(1), (2, *cam.image_shape), 0, 255).astype(np.uint8)))
     a_spec, _, stats = jax.jit(spec_pol.act)(spec_pol.params, state, (), None)
     a_ar, _, _ = jax.jit(ar_pol.act)(ar_pol.params, state, (), None)
     np.testing.assert_array_equal(np.asarray(a_spec), np.asarray(a_ar))
