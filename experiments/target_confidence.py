@@ -1,0 +1,117 @@
+"""How confident and how batch-invariant the target is on its own closed-loop states.
+
+  python -m experiments.target_confidence --suites=all --envs=40 --steps=60 --out=results/confidence.json
+
+Records greedy-AR rollouts of the target (--envs envs on the fixed evaluation initial states,
+--steps control steps), then on every state where the episode still runs:
+  - the probability the target gives its greedy token, per action dimension (teacher-forced
+    on its own greedy tokens): quantiles and the share of tokens above 0.5 / 0.9;
+  - AR replayed at batch 1 against AR at the recording's batch size on the same states: the
+    share of states where all 7 tokens agree (near-flat logits flip with batch numerics).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from absl import app, flags
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from envs import rollout, tasks as tasks_lib
+from envs.env import TabletopEnv
+from heisd_jax import checkpoint, methods, results_io, vla, vla_policy
+from heisd_jax.tokenizer import ACTION_DIM
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle through.")
+flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is compared against).")
+flags.DEFINE_integer("steps", 60, "Control steps recorded.")
+flags.DEFINE_integer("batch1_states", 200, "States replayed at batch 1 (spread over the recording).")
+flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
+
+
+def main(argv):
+    del argv
+    for name in ("envs", "steps", "batch1_states"):
+        if getattr(FLAGS, name) < 1:
+            raise app.UsageError(f"--{name} must be >= 1")
+    try:
+        task_list = tasks_lib.get_tasks(FLAGS.suites)
+        env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
+        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    policy = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
+    n = FLAGS.envs
+    tids = np.arange(n) % len(task_list)
+    eps = (np.arange(n) // len(task_list)) % tasks_lib.N_EVAL_INIT_STATES
+    keys = env.initial_state_keys(tids, eps, split="eval")
+    t0 = time.perf_counter()
+    run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p), k, t, FLAGS.steps))
+    _, traj = jax.device_get(run(policy.params, keys, jnp.asarray(tids, jnp.int32)))
+    print(f"recorded {n} envs x {FLAGS.steps} steps in {time.perf_counter() - t0:.0f}s", flush=True)
+    live = ~traj["done"]  # [T, B]
+    instr = np.asarray(env.instructions)[tids]
+
+    ar_batch = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    probs_fn = jax.jit(lambda p, o, t: _greedy_probs(p, cfg, o, t))
+    tokens, probs = [], []
+    for t in range(FLAGS.steps):  # AR at the recording's batch size, state by state in time
+        obs = vla.Observation(image=jnp.asarray(traj["image"][t]), instruction=jnp.asarray(instr),
+                              proprio=jnp.asarray(traj["proprio"][t]))
+        tk = ar_batch(params, obs)
+        tokens.append(np.asarray(tk))
+        probs.append(np.asarray(probs_fn(params, obs, tk)))
+    tokens, probs = np.stack(tokens), np.stack(probs)  # [T, B, 7]
+    live_idx = np.argwhere(live)
+    pick = live_idx[np.linspace(0, len(live_idx) - 1, min(FLAGS.batch1_states, len(live_idx))).astype(int)]
+    same = []
+    for t, b in pick:
+        obs = vla.Observation(image=jnp.asarray(traj["image"][t, b:b + 1]), instruction=jnp.asarray(instr[b:b + 1]),
+                              proprio=jnp.asarray(traj["proprio"][t, b:b + 1]))
+        same.append(bool(np.array_equal(np.asarray(ar_batch(params, obs))[0], tokens[t, b])))
+    p = probs[live]  # [N, 7]
+    q = [0.05, 0.25, 0.5, 0.75, 0.95]
+    summary = {
+        "states": int(live.sum()),
+        "greedy_prob_quantiles_per_dim": {str(k): [round(float(x), 4) for x in np.quantile(p, k, axis=0)] for k in q},
+        "greedy_prob_mean_per_dim": [round(float(x), 4) for x in p.mean(0)],
+        "share_above_0.5": round(float((p > 0.5).mean()), 4),
+        "share_above_0.9": round(float((p > 0.9).mean()), 4),
+        "batch1_vs_batch_states": len(same),
+        "batch1_vs_batch_identical_actions": round(float(np.mean(same)), 4),
+    }
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
+    except OSError:
+        commit = None
+    record = {"command": "python -m experiments.target_confidence " + " ".join(
+                  f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states")),
+              "commit": commit, "device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d"),
+              "batch": n, "summary": summary}
+    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+    results_io.write_json_atomic(FLAGS.out, record)
+    print(json.dumps(summary, indent=1))
+    print(f"results: {os.path.abspath(FLAGS.out)}")
+
+
+def _greedy_probs(params, cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray) -> jnp.ndarray:
+    """[B, 7]: the probability of each greedy token under the target, teacher-forced."""
+    logits, _ = vla.forward(params, cfg, obs, tokens)
+    p = cfg.prompt_len
+    lp = jax.nn.log_softmax(vla.action_logits(cfg, logits[:, p - 1: p - 1 + ACTION_DIM]), -1)
+    return jnp.exp(jnp.take_along_axis(lp, (tokens - cfg.first_action_id)[..., None], -1)[..., 0])
+
+
+if __name__ == "__main__":
+    app.run(main)
