@@ -22,7 +22,7 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-from absl import app, flags
+from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
@@ -41,6 +41,7 @@ flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
 
 def main(argv):
     del argv
+    logging.set_verbosity(logging.WARNING)
     for name in ("envs", "steps", "batch1_states"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
