@@ -87,14 +87,17 @@ def _restore_params(path: Path, mngr, step, abstract):
     return params
 
 
-def read_config(path: str | Path) -> vla.VLAConfig:
-    """The model config of a policy checkpoint (its metadata only: cheap)."""
-    path = Path(path)
-    _, _, meta = _read_meta(path)
+def _config(path: Path, meta: dict) -> vla.VLAConfig:
     try:
         return vla.VLAConfig(**meta["config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: bad config metadata: {e}") from e
+
+
+def read_config(path: str | Path) -> vla.VLAConfig:
+    """The model config of a policy checkpoint (its metadata only: cheap)."""
+    path = Path(path)
+    return _config(path, _read_meta(path)[2])
 
 
 def load_policy(path: str | Path):
@@ -105,11 +108,11 @@ def load_policy(path: str | Path):
         raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a VLA policy")
     if meta.get("text_vocab") != list(language.VOCAB):
         raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary")
+    cfg = _config(path, meta)
     try:
-        cfg = vla.VLAConfig(**meta["config"])
         tok = ActionTokenizer.from_dict(meta["tokenizer"])
     except (KeyError, TypeError, ValueError) as e:
-        raise CheckpointError(f"checkpoint {path}: bad config or tokenizer metadata: {e}") from e
+        raise CheckpointError(f"checkpoint {path}: bad tokenizer metadata: {e}") from e
     abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
     return _restore_params(path, mngr, step, abstract), cfg, tok, meta
 
