@@ -47,7 +47,7 @@ class ExpertConfig:
     hover: float = 0.10  # m above the object before descending
     carry_height: float = 0.19  # TCP height while carrying (clears the basket walls)
     grasp_steps: int = 5  # control steps with the jaw closing before lifting
-    release_steps: int = 4
+    released_opening: float = 0.07  # m: the jaw is open this wide -> the object is released, retreat
     pos_tol: float = 0.012  # m: waypoint reached
     fine_tol: float = 0.006  # m: place waypoint reached
     grasp_z_tol: float = 0.006  # m: grasp height reached ...
@@ -196,7 +196,7 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
             (phase == LIFT) & (jnp.abs(err[2]) < cfg.pos_tol) & (kind != tasks_lib.GOAL_KINDS.index("lift")),
             (phase == CARRY) & (xy_err < cfg.pos_tol),
             (phase == LOWER) & (n_err < cfg.fine_tol),
-            (phase == RELEASE) & (es.timer >= cfg.release_steps),
+            (phase == RELEASE) & (state.kin.gripper > cfg.released_opening),
             (phase == RETREAT) & (jnp.abs(err[2]) < 0.03),
             (phase == PUSH_APPROACH) & (n_err < cfg.pos_tol) & yaw_ok,
             (phase == PUSH_DESCEND) & (n_err < cfg.fine_tol),
@@ -247,3 +247,15 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
 def policy(env: TabletopEnv, cfg: ExpertConfig = ExpertConfig()):
     """The expert as an `envs.rollout.Policy`."""
     return per_env("expert", lambda s: init(s, env), lambda s, e, k: act(env, s, e, k, cfg))
+
+
+def observer(env: TabletopEnv, cfg: ExpertConfig = ExpertConfig()):
+    """The expert as a teacher that also reports, per env and step, the phase and goal index
+    it is in (stats "phase", "goal"), e.g. to see where a learner's episodes go wrong."""
+    def act_b(params, states, es, keys):
+        del params
+        actions, new_es = jax.vmap(lambda s, e, k: act(env, s, e, k, cfg))(states, es, keys)
+        # The phase and goal the action was computed in (before this step's transition).
+        return actions, new_es, {"phase": es.phase.astype(jnp.float32), "goal": es.goal.astype(jnp.float32)}
+
+    return dataclasses.replace(policy(env, cfg), name="expert_observer", act=act_b)

@@ -100,7 +100,8 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
     teacher: DAgger (Ross et al. 2011). The teacher acts alongside on every state the
     rollout visits, and its action is the recorded label ("action"; the policy's own is
     under "policy_action"); each env executes the teacher's action with probability
-    `beta` per step and the policy's otherwise, so the states are the policy's."""
+    `beta` per step and the policy's otherwise, so the states are the policy's. The
+    teacher's own per-step stats are under "teacher_stats" (e.g. `expert.observer`'s phase)."""
     state, pstate, act_keys = _start(env, policy, keys, task_ids)
     tstate = None if teacher is None else teacher.init(teacher.params, state)
 
@@ -113,11 +114,11 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
         step_keys = jax.vmap(lambda k: jax.random.fold_in(k, t))(act_keys)
         executed = action
         if teacher is not None:
-            label, tstate, _ = teacher.act(teacher.params, state, tstate,
-                                           jax.vmap(lambda k: jax.random.fold_in(k, 2))(step_keys))
+            label, tstate, tstats = teacher.act(teacher.params, state, tstate,
+                                                jax.vmap(lambda k: jax.random.fold_in(k, 2))(step_keys))
             take = jax.vmap(lambda k: jax.random.uniform(jax.random.fold_in(k, 3)) < beta)(step_keys)
             executed = jnp.where(take[:, None], label, action)
-            out.update(action=label, policy_action=action)
+            out.update(action=label, policy_action=action, teacher_stats=tstats)
         noise = exec_noise * jax.vmap(lambda k: jax.random.normal(jax.random.fold_in(k, 1), (6,)))(step_keys)
         executed = executed.at[:, :6].set(jnp.clip(executed[:, :6] + noise, -1.0, 1.0))
         return (jax.vmap(env.step)(state, executed), pstate, tstate), out

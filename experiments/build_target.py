@@ -40,7 +40,9 @@ flags.DEFINE_integer("demo_episodes", 75, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
-flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's action per step.")
+flags.DEFINE_list("beta", ["0"], "DAgger: probability of executing the expert's action per step, one value per "
+                  "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
+                  "the last visits the policy's own states.")
 flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy (with --start: of training it further on "
                      "the demonstrations; 0: use it as it is).")
 flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning.")
@@ -88,6 +90,22 @@ def _policy(w: Path, r: int) -> Path:
     return w / f"vla{r}"
 
 
+def _betas() -> list[float]:
+    try:
+        betas = [float(b) for b in FLAGS.beta]
+    except ValueError:
+        raise app.UsageError(f"--beta: expected comma-separated numbers, got {','.join(FLAGS.beta)}") from None
+    if not betas or not all(0 <= b <= 1 for b in betas):
+        raise app.UsageError(f"--beta: each value must be in [0, 1], got {','.join(FLAGS.beta)}")
+    return betas
+
+
+def _beta(r: int) -> float:
+    """DAgger round r's (1-based) beta."""
+    betas = _betas()
+    return betas[min(r, len(betas)) - 1]
+
+
 def plan(w: Path) -> list[Stage]:
     """The stages, in order, for the current flags."""
     scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
@@ -110,7 +128,7 @@ def plan(w: Path) -> list[Stage]:
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
         stages.append(Stage(f"dagger{r}", ["collect_demos", *scope, f"--policy={_policy(w, r - 1)}",
-                                           f"--beta={FLAGS.beta}", f"--episodes_per_task={FLAGS.dagger_episodes}",
+                                           f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
                             {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of"}))
@@ -147,7 +165,9 @@ def plan(w: Path) -> list[Stage]:
 def _settings() -> dict:
     keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
             "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size", "start")
-    return {k: getattr(FLAGS, k) for k in keys}
+    out = {k: getattr(FLAGS, k) for k in keys}
+    out["beta"] = [_beta(r) for r in range(1, FLAGS.rounds + 1)]
+    return out
 
 
 def _load_state(path: Path) -> dict:
@@ -221,8 +241,9 @@ def main(argv):
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
-    if FLAGS.rounds < 0 or not 0 <= FLAGS.beta <= 1:
-        raise app.UsageError("--rounds must be >= 0 and --beta in [0, 1]")
+    if FLAGS.rounds < 0:
+        raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
+    _betas()
     from envs import tasks as tasks_lib  # noqa: PLC0415
 
     try:
