@@ -124,14 +124,18 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     place_xy = jnp.where(kind == tasks_lib.GOAL_KINDS.index("stack_on"), pos[support, :2], rec[rec_idx, :2] + offset[:2])
     place = jnp.concatenate([place_xy, place_z[None]])
 
-    # Grasp yaw: blocks are gripped across a pair of faces (yaw mod pi/2), cylinders anyhow.
-    # Of the two yaws a quarter turn apart, take the one whose long hand (0.19 m along the
-    # finger axis) keeps clear of the other objects.
-    obj_yaw = rotations.quat_yaw(quat[obj])
-    yaw0 = jnp.where(is_block, rotations.wrap_angle(obj_yaw, np.pi / 2), 0.0)
-    yaw1 = jnp.where(yaw0 > 0, yaw0 - np.pi / 2, yaw0 + np.pi / 2)
+    # Grasp yaw: a block is gripped across a pair of faces, at its yaw plus a multiple of a
+    # quarter turn; of those, the one nearest the hand's current yaw (a turn of at most 45
+    # degrees, in the direction the relative angle of hand and block shows), or the next
+    # quarter turn when only that keeps the long hand (0.19 m along the finger axis) clear of
+    # the other objects. A cylinder is gripped at the current yaw (no turn). So the label is a
+    # function of what the views show, not of a world-frame convention.
+    cur_yaw = _tcp_yaw(state.kin.quat)
+    rel = rotations.wrap_angle(rotations.quat_yaw(quat[obj]) - cur_yaw, np.pi / 2)
+    yaw0 = cur_yaw + jnp.where(is_block, rel, 0.0)
+    yaw1 = yaw0 - jnp.where(rel > 0, np.pi / 2, -np.pi / 2)
     clear0, clear1 = _hand_clearance(yaw0, p, pos, obj), _hand_clearance(yaw1, p, pos, obj)
-    grasp_yaw = jnp.where(clear1 > clear0 + 0.01, yaw1, yaw0)
+    grasp_yaw = jnp.where(is_block & (clear0 < 0.0) & (clear1 > clear0 + 0.01), yaw1, yaw0)
     held = tcp - p  # TCP relative to the object (while it is held)
 
     # Push geometry: along the object -> zone line.
@@ -165,7 +169,6 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     target = targets[phase]
     closed = jnp.isin(phase, jnp.array([GRASP, LIFT, CARRY, LOWER, PUSH_APPROACH, PUSH_DESCEND, PUSH, PUSH_RETREAT]))
     pre_grasp = jnp.isin(phase, jnp.array([APPROACH, DESCEND]))
-    cur_yaw = _tcp_yaw(state.kin.quat)
     yaw = jnp.where(pre_grasp, grasp_yaw, es.yaw)
 
     err = target - tcp

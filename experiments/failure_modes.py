@@ -34,6 +34,7 @@ flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA check
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_integer("episodes", 10, "Evaluation initial states per task (0..49).")
 flags.DEFINE_integer("num_envs", 400, "Episodes run in parallel.")
+flags.DEFINE_integer("traces", 10, "Failed episodes whose step-by-step trace (every 5th step) goes into --out.")
 flags.DEFINE_string("out", "", "Results JSON (optional).")
 
 STUCK_SPEED = 0.01  # m/s
@@ -66,7 +67,9 @@ def main(argv):
         out = jax.device_get(run(learner.params, env.initial_state_keys(tids, eps, split="eval"),
                                  jnp.asarray(tids, jnp.int32)))
         for i, (t, e) in enumerate(chunk):
-            keep = {k: v[i] for k, v in out.items() if not k.startswith("trace_") or not out["success"][i]}
+            traced = sum("trace_phase" in r for r in rows)
+            keep = {k: v[i] for k, v in out.items()
+                    if not k.startswith("trace_") or (not out["success"][i] and traced < FLAGS.traces)}
             rows.append(dict(task=task_list[t].name, suite=task_list[t].suite, episode=int(e),
                              **{k: (np.round(v, 3) if np.issubdtype(v.dtype, np.floating) else v).tolist()
                                 for k, v in keep.items()}))

@@ -10,6 +10,8 @@ import pytest
 
 from envs.env import EnvConfig, TabletopEnv
 
+import tiny_models
+
 BATCH = 2
 
 
@@ -30,3 +32,11 @@ class Compiled:
 @pytest.fixture(scope="session")
 def compiled():
     return Compiled()
+
+
+@pytest.fixture(scope="module")
+def tiny_hybrid():
+    """The hybrid/budget tests' models and batch: (params, observations, AR tokens)."""
+    tp, dp = tiny_models.aligned_pair(0.35)
+    obs = tiny_models.obs(7, batch=tiny_models.HYBRID_B)
+    return {"target": tp, "drafter": dp}, obs, np.asarray(tiny_models.ar(tp, obs))

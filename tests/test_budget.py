@@ -12,8 +12,7 @@ import pytest
 
 from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, vla
 
-from test_hybrid import B, _candidates, setup  # noqa: F401  (setup: the shared module fixture)
-from test_spec_decode import CFG
+from tiny_models import CFG, HYBRID_B as B, candidates
 
 TREES = ((2, 1, 2), (2, 2, 4))
 AUTO = hybrid.HybridConfig(spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4), mode="hybrid", acceptance="strict",
@@ -155,9 +154,9 @@ _auto = jax.jit(hybrid.decode_auto, static_argnums=(1, 2))
 
 
 @pytest.mark.parametrize("verify", ["prefill", "separate"])
-def test_strict_equals_ar_under_every_budget_option(setup, verify):
-    params, obs, ar_tokens = setup
-    cand, _ = _candidates(ar_tokens, np.random.default_rng(3))
+def test_strict_equals_ar_under_every_budget_option(tiny_hybrid, verify):
+    params, obs, ar_tokens = tiny_hybrid
+    cand, _ = candidates(ar_tokens, np.random.default_rng(3))
     hcfg = dataclasses.replace(AUTO, verify=verify)
     assert hcfg.lossless
     use = jnp.array([True, True, True, False, True, True])  # rows accept 7, 0, 3, -, 1, 7 retrieval tokens
@@ -184,8 +183,8 @@ def test_strict_equals_ar_under_every_budget_option(setup, verify):
         np.testing.assert_array_equal(verified, np.asarray(use) if opt.retrieval else 0)
 
 
-def test_step_with_auto_budget_keeps_its_state(setup):
-    params, obs, ar_tokens = setup
+def test_step_with_auto_budget_keeps_its_state(tiny_hybrid):
+    params, obs, ar_tokens = tiny_hybrid
     from heisd_jax import kinematics, retrieval
     from heisd_jax.tokenizer import ActionTokenizer
     tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
@@ -210,8 +209,8 @@ def test_step_with_auto_budget_keeps_its_state(setup):
                     jnp.arange(B))
 
 
-def test_calibration_measures_and_caches(setup, tmp_path, monkeypatch):
-    params, _, _ = setup
+def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
+    params, _, _ = tiny_hybrid
     logs = []
     one = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=TREES[:1]))
     table = cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
@@ -278,8 +277,8 @@ def test_bad_budget_settings_are_refused():
     assert methods.hybrid_config("heisd", {"budget": "fixed", "continuation": "ar"}).continuation == "ar"
 
 
-def test_bfloat16_strict_equals_bfloat16_ar(setup):
-    params, obs, _ = setup
+def test_bfloat16_strict_equals_bfloat16_ar(tiny_hybrid):
+    params, obs, _ = tiny_hybrid
     cfg16, tp16, dp16 = methods.in_dtype(CFG, "bfloat16", params["target"], params["drafter"])
     assert tp16["embed"]["embedding"].dtype == jnp.bfloat16
     ar16 = np.asarray(jax.jit(lambda t, o: vla.ar_decode(t, cfg16, o)[0])(tp16, obs))

@@ -12,40 +12,20 @@ import pytest
 from heisd_jax import acceptance, hybrid, kinematics, retrieval, spec_decode as sd, vla
 from heisd_jax.tokenizer import ActionTokenizer
 
-from test_spec_decode import CFG, _aligned_pair, _ar, _obs
+from tiny_models import CFG, HYBRID_B as B, candidates
 
-B = 6
 SPEC = sd.SpecConfig(top_k=2, depth=2, total_tokens=4)
 STRICT = hybrid.HybridConfig(spec=SPEC, mode="retrieval", acceptance="strict", n_candidates=3,
                              skip=acceptance.SkipConfig(enabled=False))
 
 
-@pytest.fixture(scope="module")
-def setup():
-    tp, dp = _aligned_pair(0.35)
-    obs = _obs(7, batch=B)
-    return {"target": tp, "drafter": dp}, obs, np.asarray(_ar(tp, obs))
-
-
-def _candidates(ar_tokens, rng):
-    """Per row: candidate 0 = the AR action with its tokens from `cut` on replaced (cut 7 =
-    the AR action itself), the others random."""
-    cand = rng.integers(CFG.first_action_id, CFG.first_action_id + 256, (B, 3, 7))
-    cuts = np.array([7, 0, 3, 5, 1, 7])
-    for b, cut in enumerate(cuts):
-        cand[b, 1, :cut] = ar_tokens[b, :cut]
-        if cut < 7:
-            cand[b, 1, cut] = CFG.first_action_id + (ar_tokens[b, cut] - CFG.first_action_id + 128) % 256
-    return jnp.asarray(cand, jnp.int32), cuts
-
-
 _decode = jax.jit(hybrid.decode, static_argnums=(1, 2))
 
 
-def test_prefill_with_block_equals_prefill_then_decode(setup):
-    params, obs, ar_tokens = setup
+def test_prefill_with_block_equals_prefill_then_decode(tiny_hybrid):
+    params, obs, ar_tokens = tiny_hybrid
     tp = params["target"]
-    cand, _ = _candidates(ar_tokens, np.random.default_rng(0))
+    cand, _ = candidates(ar_tokens, np.random.default_rng(0))
     block = hybrid.candidate_block(cand)
     lg, h, x, blg, bh, cache, kv = vla.prefill_with_block(tp, CFG, obs, *block)
     lg2, h2, x2, cache2 = vla.prefill_features(tp, CFG, obs)
@@ -59,9 +39,9 @@ def test_prefill_with_block_equals_prefill_then_decode(setup):
 
 
 @pytest.mark.parametrize("verify,continuation", [("prefill", "drafter"), ("separate", "drafter"), ("prefill", "ar")])
-def test_strict_hybrid_equals_ar_token_for_token(setup, verify, continuation):
-    params, obs, ar_tokens = setup
-    cand, cuts = _candidates(ar_tokens, np.random.default_rng(1))
+def test_strict_hybrid_equals_ar_token_for_token(tiny_hybrid, verify, continuation):
+    params, obs, ar_tokens = tiny_hybrid
+    cand, cuts = candidates(ar_tokens, np.random.default_rng(1))
     hcfg = dataclasses.replace(STRICT, verify=verify, continuation=continuation)
     assert hcfg.lossless
     use = jnp.array([True, True, True, True, False, True])
@@ -79,9 +59,9 @@ def test_strict_hybrid_equals_ar_token_for_token(setup, verify, continuation):
         np.testing.assert_array_equal(np.asarray(stats["drafter_passes"]), 0)
 
 
-def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(setup):
-    params, obs, ar_tokens = setup
-    cand, _ = _candidates(ar_tokens, np.random.default_rng(2))
+def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(tiny_hybrid):
+    params, obs, ar_tokens = tiny_hybrid
+    cand, _ = candidates(ar_tokens, np.random.default_rng(2))
     hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", skip=acceptance.SkipConfig())
     use = jnp.ones((B,), bool)
     skip = jnp.array([True, False, True, False, False, False])
@@ -95,11 +75,11 @@ def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(setup):
     assert float(jnp.sum(st["target_passes"])) == 0 and float(jnp.sum(st["skipped"])) == B
 
 
-def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(setup):
+def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(tiny_hybrid):
     """A datastore holding each row's AR action under its own key: retrieval is perfect, so
     skipping would fire every step; it must stop after k_skip in a row, and only while in
     the retrieval mode. With strict acceptance and skip off, the step's tokens are AR's."""
-    params, obs, ar_tokens = setup
+    params, obs, ar_tokens = tiny_hybrid
     tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
     spec = retrieval.KeySpec(history=1)
     state = hybrid.init_state(B, spec)
@@ -134,11 +114,11 @@ def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(setup):
     np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
 
 
-def test_recent_actions_are_verified_as_candidates(setup):
+def test_recent_actions_are_verified_as_candidates(tiny_hybrid):
     """The env's own last executed actions join the datastore's candidates: on an unchanged
     observation the previous action is the target's again, so it is accepted whole in the
     one fused pass (strict: still AR's tokens); the state keeps them newest first."""
-    params, obs, ar_tokens = setup
+    params, obs, ar_tokens = tiny_hybrid
     tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
     spec = retrieval.KeySpec(history=1)
     rng = np.random.default_rng(3)

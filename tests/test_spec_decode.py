@@ -8,18 +8,9 @@ import pytest
 
 from heisd_jax import drafter, spec_decode as sd, vla
 
-CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
-                    cache_slots=128)
+from tiny_models import CFG, aligned_pair, ar, obs as make_obs
+
 B = 4
-
-
-def _obs(seed=0, batch=B):
-    rng = np.random.default_rng(seed)
-    instr = rng.integers(1, CFG.text_vocab, (batch, CFG.text_len))
-    instr[:, 12:] = 0
-    return vla.Observation(image=jnp.asarray(rng.integers(0, 256, (batch, 16, 16, 3)), jnp.uint8),
-                           instruction=jnp.asarray(instr, jnp.int32),
-                           proprio=jnp.asarray(rng.normal(size=(batch, 8)), jnp.float32))
 
 
 @pytest.fixture(scope="module")
@@ -27,44 +18,25 @@ def params():
     return vla.init_params(CFG, jax.random.PRNGKey(0)), drafter.init_params(CFG, jax.random.PRNGKey(1))
 
 
-def _aligned_pair(noise: float):
-    """A target whose decoder blocks add nothing (hidden = norm(input embedding)) and a
-    drafter that copies the token embedding through the same norm: the drafter predicts the
-    target's features exactly (noise = 0), or approximately (noise > 0: partial acceptance)."""
-    tp = vla.init_params(CFG, jax.random.PRNGKey(2))
-    tp = dict(tp, blocks=dict(tp["blocks"], out={"kernel": jnp.zeros_like(tp["blocks"]["out"]["kernel"])},
-                              mlp=dict(tp["blocks"]["mlp"], down={"kernel": jnp.zeros_like(tp["blocks"]["mlp"]["down"]["kernel"])})))
-    dp = drafter.init_params(CFG, jax.random.PRNGKey(3))
-    d = CFG.d_model
-    fc = jnp.concatenate([jnp.eye(d), jnp.zeros((d, d))]) + noise * jax.random.normal(jax.random.PRNGKey(4), (2 * d, d))
-    block = dict(dp["block"], out={"kernel": jnp.zeros((d, d))},
-                 mlp=dict(dp["block"]["mlp"], down={"kernel": jnp.zeros_like(dp["block"]["mlp"]["down"]["kernel"])}))
-    return tp, dict(dp, fc={"kernel": fc, "bias": jnp.zeros(d)}, block=block)
-
-
 def _decode(tp, dp, spec, obs):
     return jax.jit(lambda t, d, o: sd.spec_decode(t, d, CFG, spec, o))(tp, dp, obs)
 
 
-def _ar(tp, obs):
-    return jax.jit(lambda t, o: vla.ar_decode(t, CFG, o)[0])(tp, obs)
-
-
 def test_strict_equals_ar_with_random_parameters(params):
     tp, dp = params
-    obs = _obs()
+    obs = make_obs()
     tokens, stats = _decode(tp, dp, sd.SpecConfig(top_k=4, depth=3, total_tokens=10), obs)
-    np.testing.assert_array_equal(np.asarray(tokens), np.asarray(_ar(tp, obs)))
+    np.testing.assert_array_equal(np.asarray(tokens), np.asarray(ar(tp, obs)))
     assert np.all(np.asarray(stats["target_passes"]) <= 7)
 
 
 @pytest.mark.parametrize("noise,depth", [(0.0, 3), (0.0, 6), (0.35, 4)])
 def test_strict_equals_ar_when_drafts_are_accepted(noise, depth):
-    tp, dp = _aligned_pair(noise)
-    obs = _obs(1, batch=6)
+    tp, dp = aligned_pair(noise)
+    obs = make_obs(1, batch=6)
     spec = sd.SpecConfig(top_k=4, depth=depth, total_tokens=4 * depth)
     tokens, stats = _decode(tp, dp, spec, obs)
-    np.testing.assert_array_equal(np.asarray(tokens), np.asarray(_ar(tp, obs)))
+    np.testing.assert_array_equal(np.asarray(tokens), np.asarray(ar(tp, obs)))
     passes = np.asarray(stats["target_passes"])
     if noise == 0:  # a perfect drafter: prefill + ceil(6 / (depth + 1)) verification passes, unless
         # EAGLE-2's frontier pruned the greedy path (cumulative scores of other branches won)
@@ -75,8 +47,8 @@ def test_strict_equals_ar_when_drafts_are_accepted(noise, depth):
 
 
 def test_unbatched_equals_batched(params):
-    tp, dp = _aligned_pair(0.35)
-    obs = _obs(2)
+    tp, dp = aligned_pair(0.35)
+    obs = make_obs(2)
     spec = sd.SpecConfig(top_k=4, depth=3, total_tokens=12, acceptance="token_relaxed", relax_bins=9)
     tokens, stats = _decode(tp, dp, spec, obs)
     for i in range(B):
@@ -96,8 +68,8 @@ def test_relaxed_acceptance_keeps_drafts_within_r_bins():
 def test_relaxed_tokens_stay_within_r_of_the_target_greedy_choice():
     """With relaxed acceptance each emitted token is within r bins of the target's greedy
     token given the emitted prefix (checked by teacher forcing the target on the output)."""
-    tp, dp = _aligned_pair(0.35)
-    obs = _obs(3)
+    tp, dp = aligned_pair(0.35)
+    obs = make_obs(3)
     r = 6
     tokens, _ = _decode(tp, dp, sd.SpecConfig(top_k=4, depth=4, total_tokens=16, acceptance="token_relaxed",
                                               relax_bins=r), obs)
@@ -109,7 +81,7 @@ def test_relaxed_tokens_stay_within_r_of_the_target_greedy_choice():
 
 def test_tree_structure_and_selection_keep_ancestors(params):
     tp, dp = params
-    obs = _obs()
+    obs = make_obs()
     _, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
     feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
                                        vla.embed_tokens(tp, jnp.full((B,), CFG.first_action_id)))
@@ -134,7 +106,7 @@ def test_tree_structure_and_selection_keep_ancestors(params):
 
 def test_tree_verification_equals_sequential_decoding_of_each_path(params):
     tp, dp = params
-    obs = _obs(5)
+    obs = make_obs(5)
     logits, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
     root = jnp.argmax(vla.action_logits(CFG, logits), -1) + CFG.first_action_id
     feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
@@ -145,20 +117,23 @@ def test_tree_verification_equals_sequential_decoding_of_each_path(params):
     block, depth, intra = sd.tree_block(CFG, root, tree, sel)
     tree_logits, _, _ = vla.decode(tp, CFG, cache, block, depth, intra)
     one = jnp.ones((B, 1, 1), bool)
-    for n in range(1, block.shape[1]):  # node n: decode root + its path one token at a time
-        path = [0] + [j for j in range(1, block.shape[1]) if bool(intra[0, n, j])]
-        for b in range(1, B):
-            assert [j for j in range(1, block.shape[1]) if bool(intra[b, n, j])] is not None
-        c = cache
-        for j in path:  # row 0's path (rows differ; checked on row 0)
-            lg, _, kv = vla.decode(tp, CFG, c, block[:, j:j + 1], jnp.zeros((B, 1), jnp.int32), one)
-            c = vla.commit(c, kv, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
-        np.testing.assert_allclose(np.asarray(lg[0, 0]), np.asarray(tree_logits[0, n]), atol=2e-4)
+    zero = jnp.zeros((B, 1), jnp.int32)
+    step = jax.jit(lambda c, t: vla.decode(tp, CFG, c, t, zero, one))
+    commit = jax.jit(lambda c, kv: vla.commit(c, kv, zero, jnp.ones((B,), jnp.int32)))
+    intra, tree_logits = np.asarray(intra), np.asarray(tree_logits)
+    for n in range(1, block.shape[1]):  # node n: decode root + row b's path one token at a time
+        for b in range(B):  # rows draft different trees: each row's own path
+            path = [0] + [j for j in range(1, block.shape[1]) if intra[b, n, j]]
+            c = cache
+            for j in path:  # the whole batch fed block[:, j]; only row b's result is read
+                lg, _, kv = step(c, block[:, j:j + 1])
+                c = commit(c, kv)
+            np.testing.assert_allclose(np.asarray(lg[b, 0]), tree_logits[b, n], atol=2e-4, err_msg=f"row {b} node {n}")
 
 
 def test_cache_after_commit_equals_one_by_one_decoding():
-    tp, dp = _aligned_pair(0.0)
-    obs = _obs(6)
+    tp, dp = aligned_pair(0.0)
+    obs = make_obs(6)
     spec = sd.SpecConfig(top_k=4, depth=3, total_tokens=12)
     logits, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
     root = jnp.argmax(vla.action_logits(CFG, logits), -1) + CFG.first_action_id
