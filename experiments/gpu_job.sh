@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# Runs experiments on a leased GPU machine (the device tool), with the carried mujoco wheels.
+#
+#   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
+#   bash experiments/gpu_job.sh start -- CMD [ARGS...] [-- CMD ...]  # the same in the background
+#   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
+#
+# Each command's output is teed to job.log in the folder that comes back, which a command
+# names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
+# returns at once and leaves the job running in its own process session across calls of at
+# most 10 minutes, /tmp/gpu_job/out, which `poll` packs into $OUT/results.tar.part-* (15 MiB
+# parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it), else
+# a build_target work folder's finished stack (build.json, logs, the latest complete vla*,
+# drafter, datastore, eval_ar.json), else everything. JAX's compilation cache persists in
+# /tmp/gpu_job/jax_cache unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
+set -uo pipefail
+SELF=$(realpath "$0")
+cd "$(dirname "$SELF")/.."  # repo root
+WORK=/tmp/gpu_job SITE=/tmp/site
+export PYTHONPATH=$SITE PYTHONUNBUFFERED=1 JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$WORK/jax_cache}
+usage() { echo "usage: $0 [start] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...]" >&2; exit 2; }
+
+install() {
+  [ -n "${GPU_JOB_SITE_READY:-}" ] && return
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target $SITE .whl/*.whl \
+    || { echo "installing the carried wheels (.whl/*.whl) failed" >&2; exit 1; }
+}
+
+run() {  # runs the commands separated by `--` one after another; exits with the last failure
+  local rc=0 cmd=() arg
+  : "${OUT:?OUT must name the folder that comes back}"; mkdir -p "$OUT"
+  for arg in "$@" --; do
+    if [ "$arg" != "--" ]; then cmd+=("${arg//\$OUT/$OUT}"); continue; fi
+    [ ${#cmd[@]} -eq 0 ] && continue
+    echo "== $(date -u +%FT%TZ) ${cmd[*]}" | tee -a "$OUT/job.log"
+    "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+    local s=${PIPESTATUS[0]}; [ "$s" -ne 0 ] && rc=$s
+    echo "== exit $s" | tee -a "$OUT/job.log"
+    cmd=()
+  done
+  return $rc
+}
+
+pack() {  # the PATHs given, else a build's finished stack, else everything, into $OUT
+  local d=$WORK/out items=("$@") b v f
+  if [ ${#items[@]} -eq 0 ]; then
+    b=$(cd "$d" && ls -d */build.json 2>/dev/null | head -n 1)
+    if [ -n "$b" ]; then
+      b=${b%/build.json}; items=("$b/build.json" "$b/logs")
+      v=$(cd "$d" && ls -d "$b"/vla[0-9]* 2>/dev/null | sort -V | tail -n 1)
+      [ -n "$v" ] && [ -d "$d/$v/0" ] && items+=("$v")
+      for f in drafter datastore eval_ar.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
+    else
+      items=(.)
+    fi
+  fi
+  (cd "$d" && tar cf - "${items[@]}") | split -b 15M - "$OUT/results.tar.part-"
+}
+
+case "${1:-}" in
+  --)
+    [ $# -ge 2 ] || usage
+    install; run "${@:2}"
+    ;;
+  start)
+    [ "${2:-}" = "--" ] && [ $# -ge 3 ] || usage
+    kill -0 "$(cat "$WORK/pid" 2>/dev/null)" 2>/dev/null && { echo "a job is already running: poll it" >&2; exit 1; }
+    install
+    rm -rf "$WORK/out"; mkdir -p "$WORK/out"
+    OUT=$WORK/out GPU_JOB_SITE_READY=1 setsid nohup bash "$SELF" "${@:2}" > /dev/null 2>&1 < /dev/null &
+    echo $! > "$WORK/pid"
+    sleep 20; tail -n 20 "$WORK/out/job.log" 2>/dev/null
+    ;;
+  poll)
+    [[ "${2:-}" =~ ^[0-9]+$ ]] || usage
+    [ -f "$WORK/pid" ] || { echo "no background job: start one first" >&2; exit 1; }
+    end=$(( $(date +%s) + $2 ))
+    while [ "$(date +%s)" -lt "$end" ] && kill -0 "$(cat "$WORK/pid")" 2>/dev/null; do sleep 10; done
+    kill -0 "$(cat "$WORK/pid")" 2>/dev/null && echo "RUNNING" || echo "ENDED"
+    tail -c 6000 "$WORK/out/job.log"
+    nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
+    cat "$WORK"/out/*/build.json 2>/dev/null
+    pack "${@:3}"; ls -la "$OUT"
+    ;;
+  *)
+    usage
+    ;;
+esac
