@@ -21,6 +21,7 @@ from flax import struct
 from mujoco import mjx
 
 from envs import camera, ik, language, proprio, robot, rotations, scene, tasks as tasks_lib
+from heisd_jax.observation import Observation
 
 N_LAYOUT_TRIES = 16  # candidate layouts drawn per reset; the first valid one is used
 
@@ -31,13 +32,6 @@ class EnvConfig:
     control: ik.ControlConfig = ik.ControlConfig()
     render: bool = True  # False: obs.image is all zeros (for experts and physics benchmarks)
     arm_init_noise: float = 0.02  # rad, uniform noise on the ready pose at reset
-
-
-@struct.dataclass
-class Observation:
-    image: jnp.ndarray  # [H, W * n_views, 3] uint8: agent view (and wrist view), envs.camera
-    proprio: jnp.ndarray  # [8] ee position, ee quaternion, jaw opening
-    instruction: jnp.ndarray  # [L] int32 token ids (envs.language)
 
 
 @struct.dataclass
@@ -52,7 +46,7 @@ class EpisodeInfo:
 @struct.dataclass
 class EnvState:
     data: mjx.Data
-    obs: Observation
+    obs: Observation  # one env's (unbatched): image [H, W * n_views, 3], instruction [L], proprio [8]
     kin: proprio.EEKinematics
     info: EpisodeInfo
     step: jnp.ndarray  # [] int32 control steps taken

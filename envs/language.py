@@ -1,13 +1,16 @@
-"""The instruction vocabulary: one word per token, built from every suite's instructions."""
+"""The instruction vocabulary: one word per token, built from every suite's instructions.
+Ids follow the decode core's instruction format (`heisd_jax.observation`): PAD is id 0 and
+an instruction is TEXT_LEN tokens."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from envs.tasks import ALL_TASKS
+from heisd_jax.observation import PAD_ID, TEXT_LEN
 
 PAD, BOS, EOS, UNK = "<pad>", "<bos>", "<eos>", "<unk>"
-MAX_INSTRUCTION_TOKENS = 20  # BOS + words + EOS, padded
+MAX_INSTRUCTION_TOKENS = TEXT_LEN  # BOS + words + EOS, padded
 
 
 def _build_vocab() -> tuple[str, ...]:
@@ -17,6 +20,7 @@ def _build_vocab() -> tuple[str, ...]:
 
 VOCAB: tuple[str, ...] = _build_vocab()
 WORD_TO_ID = {w: i for i, w in enumerate(VOCAB)}
+assert WORD_TO_ID[PAD] == PAD_ID
 
 
 def encode(text: str, length: int = MAX_INSTRUCTION_TOKENS) -> np.ndarray:

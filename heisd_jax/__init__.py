@@ -1,5 +1,34 @@
-"""heisd-jax: hybrid speculative decoding for VLA policies, evaluated in batched MJX envs."""
+"""heisd-jax: hybrid speculative decoding for VLA policies, evaluated in batched MJX envs.
 
-import envs as _envs  # noqa: F401  (sets the XLA CPU flag before JAX starts)
+The decode API (docs/decode_api.md), importable from here without the simulator:
+    Observation, VLAConfig, check_observation, decode_action, SpecConfig, load_policy,
+    load_drafter, ActionTokenizer
+Names resolve on first use, so `import heisd_jax` itself imports nothing heavy and has no
+side effects (the env package, `envs`, sets its own XLA flags when imported).
+"""
+
+import importlib as _importlib
 
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    "Observation": "heisd_jax.observation",
+    "VLAConfig": "heisd_jax.vla",
+    "check_observation": "heisd_jax.vla",
+    "decode_action": "heisd_jax.vla",
+    "SpecConfig": "heisd_jax.spec_decode",
+    "load_policy": "heisd_jax.checkpoint",
+    "load_drafter": "heisd_jax.checkpoint",
+    "ActionTokenizer": "heisd_jax.tokenizer",
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(_importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'heisd_jax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(list(globals()) + __all__)

@@ -1,22 +1,27 @@
 """Checkpoints (orbax): training state for resumption, and the small policy checkpoints we
-ship in `checkpoints/` (parameters, model config, tokenizer statistics).
+ship in `checkpoints/` (parameters, model config, tokenizer statistics, instruction
+vocabulary, a content checksum).
 
 Orbax writes each step into a temporary directory and renames it when complete, so a crash
 never corrupts the last good checkpoint. `load_policy` gives one-call loading with errors
-that name the path and the problem.
+that name the path and the problem; the checksum recorded at save time catches weights
+overwritten later (shapes alone would not). Loading does not import the simulator: code
+that feeds a policy env instructions passes the env's vocabulary (`text_vocab=`) to have a
+checkpoint of another vocabulary refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import logging
 from pathlib import Path
+from typing import Sequence
 
 import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from envs import language
 from heisd_jax import vla
 from heisd_jax.tokenizer import ActionTokenizer
 
@@ -28,9 +33,16 @@ class CheckpointError(ValueError):
     """A missing, truncated or mismatched checkpoint."""
 
 
-def metadata(model_cfg: vla.VLAConfig, tok: ActionTokenizer, kind: str = "vla", extra: dict | None = None) -> dict:
+def metadata(model_cfg: vla.VLAConfig, tok: ActionTokenizer, kind: str = "vla", extra: dict | None = None,
+             text_vocab: Sequence[str] | None = None) -> dict:
+    """A policy checkpoint's metadata. text_vocab: the instruction words by id (default: the
+    env's, `envs.language.VOCAB`, which the training demonstrations are encoded with)."""
+    if text_vocab is None:
+        from envs import language  # noqa: PLC0415 (training-time only; loading never imports envs)
+
+        text_vocab = language.VOCAB
     return dict(format=FORMAT, kind=kind, config=dataclasses.asdict(model_cfg), tokenizer=tok.to_dict(),
-                text_vocab=list(language.VOCAB), **(extra or {}))
+                text_vocab=list(text_vocab), **(extra or {}))
 
 
 def manager(directory: str | Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
@@ -53,9 +65,11 @@ def restore(mngr: ocp.CheckpointManager, abstract_tree, step: int | None = None)
     return out["state"], out["meta"]
 
 
-def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionTokenizer, extra: dict | None = None):
-    """Writes a shippable policy checkpoint (parameters only) at `path`."""
-    save(manager(path, max_to_keep=1), 0, params, metadata(model_cfg, tok, extra=extra))
+def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionTokenizer, extra: dict | None = None,
+                text_vocab: Sequence[str] | None = None):
+    """Writes a shippable policy checkpoint (parameters and their checksum) at `path`."""
+    meta = metadata(model_cfg, tok, extra=extra, text_vocab=text_vocab)
+    save(manager(path, max_to_keep=1), 0, params, dict(meta, checksum=checksum(params)))
 
 
 def _read_meta(path: Path):
@@ -75,16 +89,54 @@ def _read_meta(path: Path):
     return mngr, step, meta
 
 
-def _restore_params(path: Path, mngr, step, abstract):
+def _restore_params(path: Path, mngr, step, abstract, meta: dict):
     try:
         params, _ = restore(mngr, abstract, step)
     except Exception as e:
-        raise CheckpointError(f"checkpoint {path} (step {step}): parameters missing, truncated or not matching "
-                              f"the config ({type(e).__name__}: {str(e)[:300]})") from e
+        raise CheckpointError(f"checkpoint {path} (step {step}): parameters missing, truncated, corrupted or not "
+                              f"matching the config ({type(e).__name__}: {str(e)[:300]})") from e
     for a, b in zip(jax.tree.leaves(abstract), jax.tree.leaves(params)):
         if tuple(a.shape) != tuple(np.shape(b)):
             raise CheckpointError(f"checkpoint {path}: parameter shape {np.shape(b)} does not match config {a.shape}")
+    verify_checksum(path, params, meta)
     return params
+
+
+def checksum(params) -> str:
+    """"sha256:<hex>" over every parameter leaf's path, dtype, shape and bytes, leaves in
+    sorted path order: any changed weight changes it."""
+    h = hashlib.sha256()
+    for path, leaf in sorted(jax.tree_util.tree_leaves_with_path(params), key=lambda kv: jax.tree_util.keystr(kv[0])):
+        x = np.ascontiguousarray(np.asarray(leaf))
+        h.update(f"{jax.tree_util.keystr(path)}|{x.dtype.str}|{x.shape}|".encode())
+        h.update(x.tobytes())
+    return "sha256:" + h.hexdigest()
+
+
+def verify_checksum(path: str | Path, params, meta: dict) -> None:
+    """Refuses parameters whose checksum differs from the one in `meta` (the bytes changed
+    after saving); a checkpoint saved without one loads with a warning."""
+    want = meta.get("checksum")
+    if want is None:
+        logging.getLogger(__name__).warning("checkpoint %s records no checksum: its weights cannot be verified", path)
+        return
+    got = checksum(params)
+    if got != want:
+        raise CheckpointError(f"checkpoint {path} is corrupted: its parameters' checksum {got} differs from the "
+                              f"{want} recorded when it was saved")
+
+
+def check_vocabulary(path: str | Path, meta: dict, text_vocab: Sequence[str]) -> None:
+    """Refuses a policy trained on another instruction vocabulary than `text_vocab` (the
+    words by id, e.g. `envs.language.VOCAB`): its instruction ids would mean other words."""
+    recorded, here = meta.get("text_vocab"), list(text_vocab)
+    if recorded == here:
+        return
+    if recorded is None:
+        raise CheckpointError(f"checkpoint {path} records no instruction vocabulary")
+    first = next((i for i, (a, b) in enumerate(zip(recorded, here)) if a != b), min(len(recorded), len(here)))
+    raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary: {len(recorded)} "
+                          f"words, the instructions here use {len(here)}; they first differ at id {first}")
 
 
 def _config(path: Path, meta: dict) -> vla.VLAConfig:
@@ -100,21 +152,23 @@ def read_config(path: str | Path) -> vla.VLAConfig:
     return _config(path, _read_meta(path)[2])
 
 
-def load_policy(path: str | Path):
-    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory."""
+def load_policy(path: str | Path, text_vocab: Sequence[str] | None = None):
+    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory. With
+    `text_vocab` (the instruction words by id the caller's instructions use), a checkpoint
+    trained on another vocabulary is refused (`check_vocabulary`)."""
     path = Path(path)
     mngr, step, meta = _read_meta(path)
     if meta.get("kind", "vla") != "vla":
         raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a VLA policy")
-    if meta.get("text_vocab") != list(language.VOCAB):
-        raise CheckpointError(f"checkpoint {path} was trained with another instruction vocabulary")
+    if text_vocab is not None:
+        check_vocabulary(path, meta, text_vocab)
     cfg = _config(path, meta)
     try:
         tok = ActionTokenizer.from_dict(meta["tokenizer"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: bad tokenizer metadata: {e}") from e
     abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
-    return _restore_params(path, mngr, step, abstract), cfg, tok, meta
+    return _restore_params(path, mngr, step, abstract, meta), cfg, tok, meta
 
 
 def fingerprint(params) -> str:
@@ -129,7 +183,7 @@ def fingerprint(params) -> str:
 def save_drafter(path: str | Path, dparams, target_cfg: vla.VLAConfig, target_params, extra: dict | None = None):
     """Writes a drafter checkpoint, tied to its target by the target's fingerprint."""
     meta = dict(format=FORMAT, kind="drafter", config=dataclasses.asdict(target_cfg),
-                target_fingerprint=fingerprint(target_params), **(extra or {}))
+                target_fingerprint=fingerprint(target_params), **(extra or {}), checksum=checksum(dparams))
     save(manager(path, max_to_keep=1), 0, dparams, meta)
 
 
@@ -151,4 +205,4 @@ def load_drafter(path: str | Path, target_cfg: vla.VLAConfig, target_params):
         raise CheckpointError(f"drafter {path} was trained for another target checkpoint (fingerprint "
                               f"{meta.get('target_fingerprint')} != {fingerprint(target_params)})")
     abstract = jax.eval_shape(lambda: drafter.init_params(target_cfg, jax.random.PRNGKey(0)))
-    return _restore_params(path, mngr, step, abstract), meta
+    return _restore_params(path, mngr, step, abstract, meta), meta

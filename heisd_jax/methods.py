@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs import camera, expert, tasks as tasks_lib
+from envs import camera, expert, language, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from envs.rollout import Policy
 from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, spec_decode, vla,
@@ -26,7 +26,7 @@ DTYPES = ("float32", "bfloat16")
 
 
 def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
-    params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path)
+    params, cfg, tok, _ = checkpoint.load_policy(checkpoint_path, text_vocab=language.VOCAB)
     if cfg.image_shape != env.config.camera.image_shape:
         raise ValueError(f"checkpoint {checkpoint_path} expects images of shape {cfg.image_shape} "
                          f"({cfg.n_views} view(s)), the env renders {env.config.camera.image_shape}")

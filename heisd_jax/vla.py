@@ -8,6 +8,8 @@ Everything is a pure function of (params, cache, inputs):
                                                   tree verification: T nodes + tree mask)
                                                   -> logits, hidden, their keys/values
     commit(cache, block, src, n)                  write n of those tokens into the cache
+and the public entry `decode_action(params, cfg, obs, spec=None)` -> (tokens [B, 7], stats),
+which checks the observation (`check_observation`) and decodes one action in one jitted call.
 The KV cache has a static number of slots; each row has its own length and key mask, so
 rows can accept different numbers of tokens. A pass never writes the cache: attention
 reads the committed slots and the pass's own block (`Block`) side by side, and `commit`
@@ -24,9 +26,10 @@ import dataclasses
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
-from envs import language
+from heisd_jax.observation import PAD_ID, TEXT_LEN, TEXT_VOCAB, Observation
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 NEG_INF = -1e9
@@ -39,8 +42,8 @@ class VLAConfig:
     n_views: int = 1  # views tiled left to right in the image (envs.camera: agent view, wrist)
     patch_size: int = 8
     vision_layers: int = 2
-    text_len: int = language.MAX_INSTRUCTION_TOKENS
-    text_vocab: int = len(language.VOCAB)
+    text_len: int = TEXT_LEN
+    text_vocab: int = TEXT_VOCAB  # instruction ids [0, text_vocab), PAD_ID = 0
     proprio_dim: int = 8
     d_model: int = 256
     n_layers: int = 8
@@ -99,11 +102,54 @@ class Block:
     v: jnp.ndarray
 
 
-@struct.dataclass
-class Observation:
-    image: jnp.ndarray  # [B, *VLAConfig.image_shape] uint8
-    instruction: jnp.ndarray  # [B, text_len] int32 (envs.language ids, PAD = 0)
-    proprio: jnp.ndarray  # [B, proprio_dim] float32
+def _is_concrete(x) -> bool:
+    return not isinstance(x, jax.core.Tracer)
+
+
+def check_observation(cfg: VLAConfig, obs: Observation) -> int:
+    """Checks a batch of observations against the model before it meets the model, so a bad
+    input fails here with the field, its shape and the expected shape, not deep inside Flax.
+    Shapes and dtypes are always checked (free, even at trace time); values (finite proprio,
+    instruction ids in [0, text_vocab)) only when the arrays are concrete, since a tracer's
+    values are unknown. Returns the batch size B. Raises ValueError (TypeError for a value
+    that is not an `Observation`)."""
+    if not isinstance(obs, Observation):
+        raise TypeError(f"obs must be a heisd_jax.observation.Observation, got {type(obs).__name__}")
+    expected = {"image": ("B", *cfg.image_shape), "instruction": ("B", cfg.text_len), "proprio": ("B", cfg.proprio_dim)}
+    shapes = {}
+    for name, want in expected.items():
+        x = getattr(obs, name)
+        shape = tuple(getattr(x, "shape", ()))
+        want_s = "[" + ", ".join(map(str, want)) + "]"
+        if len(shape) != len(want) or shape[1:] != want[1:]:
+            hint = ""
+            if name == "image" and len(shape) == 4 and shape[1] == 3 and shape[2:] == cfg.image_shape[:2]:
+                hint = " (channels first? images are channels last: [B, H, W, 3])"
+            raise ValueError(f"observation.{name} has shape {list(shape)}, expected {want_s}{hint}")
+        shapes[name] = shape
+    batch = {name: shape[0] for name, shape in shapes.items()}
+    if len(set(batch.values())) > 1:
+        raise ValueError(f"observation fields disagree on the batch size B: "
+                         + ", ".join(f"{n} {list(shapes[n])}" for n in expected))
+    if obs.image.dtype != jnp.uint8:
+        raise ValueError(f"observation.image has dtype {obs.image.dtype}, expected uint8 (pixels 0..255)")
+    if not jnp.issubdtype(obs.instruction.dtype, jnp.integer):
+        raise ValueError(f"observation.instruction has dtype {obs.instruction.dtype}, expected int32 token ids")
+    if not jnp.issubdtype(obs.proprio.dtype, jnp.floating):
+        raise ValueError(f"observation.proprio has dtype {obs.proprio.dtype}, expected float32")
+    if _is_concrete(obs.proprio):
+        proprio = np.asarray(obs.proprio)
+        bad = ~np.isfinite(proprio)
+        if bad.any():
+            rows = np.flatnonzero(bad.any(-1))
+            raise ValueError(f"observation.proprio has non-finite values (NaN/inf) in rows {rows[:8].tolist()}"
+                             f"{' ...' if len(rows) > 8 else ''} of shape {list(proprio.shape)}")
+    if _is_concrete(obs.instruction):
+        ids = np.asarray(obs.instruction)
+        if ids.size and (ids.min() < 0 or ids.max() >= cfg.text_vocab):
+            raise ValueError(f"observation.instruction has token ids in [{ids.min()}, {ids.max()}], "
+                             f"expected [0, {cfg.text_vocab}) (text_vocab)")
+    return batch["image"]
 
 
 def init_cache(cfg: VLAConfig, batch: int) -> KVCache:
@@ -246,7 +292,7 @@ def causal_mask(t: int, slots: int) -> jnp.ndarray:
 def prompt_key_mask(cfg: VLAConfig, instruction: jnp.ndarray) -> jnp.ndarray:
     """[B, prompt_len] bool: prompt slots that hold real tokens (instruction padding is off)."""
     b = instruction.shape[0]
-    text_ok = instruction != language.WORD_TO_ID[language.PAD]
+    text_ok = instruction != PAD_ID
     return jnp.concatenate([jnp.ones((b, cfg.n_patches), bool), text_ok, jnp.ones((b, 1), bool)], 1)
 
 
@@ -380,6 +426,7 @@ def action_logits(cfg: VLAConfig, logits: jnp.ndarray) -> jnp.ndarray:
 def ar_decode(params, cfg: VLAConfig, obs: Observation):
     """Greedy autoregressive decoding of one action (the `ar` baseline): 1 prefill + 6
     single-token passes. Returns action token ids [B, 7] and the number of target passes."""
+    check_observation(cfg, obs)
     logits, _, cache = prefill(params, cfg, obs)
     first = jnp.argmax(action_logits(cfg, logits), -1) + cfg.first_action_id  # [B]
     b = first.shape[0]
@@ -420,3 +467,36 @@ def ar_continue(params, cfg: VLAConfig, cache: KVCache, out: jnp.ndarray, n_out:
     _, out, _, passes = jax.lax.while_loop(lambda c: jnp.any(c[2] < ACTION_DIM), body,
                                            (cache, out, n_out.astype(jnp.int32), jnp.zeros((b,), jnp.int32)))
     return out, passes
+
+
+def decode_action(params, cfg: VLAConfig, obs: Observation, spec=None) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
+    """Greedy decoding of one action per observation row, in one jitted call: the public
+    decode entry (docs/decode_api.md).
+
+    spec None: autoregressive decoding (`ar_decode`); params are the target's parameters.
+    spec a `spec_decode.SpecConfig`: drafter speculative decoding (`spec_decode.spec_decode`);
+    params = {"target": target params, "drafter": drafter params}. With strict acceptance
+    (the default) its tokens equal AR's.
+    The observation is checked first (`check_observation`, outside jit). Returns action
+    token ids [B, 7] int32 in [cfg.first_action_id, cfg.vocab_size) (bin = id -
+    first_action_id; `ActionTokenizer.decode` maps ids to actions) and per-row statistics,
+    each [B] float32: target_passes, tokens (= 7), and for speculative decoding also
+    drafter_passes and rounds. Compiles once per (cfg, spec, batch shape)."""
+    check_observation(cfg, obs)
+    if spec is not None:
+        spec.check_fits(cfg)
+    return _decode_action_jit(params, obs, cfg, spec)
+
+
+def _decode_action(params, obs: Observation, cfg: VLAConfig, spec):
+    if spec is None:
+        tokens, passes = ar_decode(params, cfg, obs)
+        b = tokens.shape[0]
+        return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
+                        "tokens": jnp.full((b,), ACTION_DIM, jnp.float32)}
+    from heisd_jax import spec_decode  # noqa: PLC0415 (spec_decode imports this module)
+
+    return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)
+
+
+_decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))
