@@ -19,7 +19,7 @@ Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, -
 
 from __future__ import annotations
 
-from absl import app, flags
+from absl import flags
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax.numpy as jnp
@@ -29,6 +29,7 @@ from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint
 from heisd_jax import acceptance, checkpoint, methods
+from experiments import cli
 
 FLAGS = flags.FLAGS
 
@@ -90,4 +91,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -34,14 +34,19 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos
 from heisd_jax.timing import median_seconds
 from heisd_jax import checkpoint, data, spec_decode, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "16", "256"], "Batch sizes (rows decoded together).")
+cli.positive_int_list("batch_sizes")
 flags.DEFINE_integer("reps", 30, "Timed calls per measurement (the median is reported).")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_enum("dtype", "", ["", "float32", "bfloat16"], "Compute dtype override (default: the checkpoint's).")
 flags.DEFINE_string("drafter", "", "Drafter checkpoint: also time speculative decoding.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("demos", "", "Demos dataset to draw observations from (default: random observations).")
+cli.existing_dir("demos", "demonstrations dataset")
 flags.DEFINE_list("relax_bins", ["0", "9"], "Acceptance settings timed with --drafter (0: strict, r > 0: token_relaxed).")
 flags.DEFINE_integer("top_k", 8, "Draft tree top-k.")
 flags.DEFINE_integer("depth", 4, "Draft tree depth.")
@@ -101,8 +106,11 @@ def bench(params, cfg: vla.VLAConfig, batch: int, reps: int, dparams=None) -> di
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
-    dparams = checkpoint.load_drafter(FLAGS.drafter, cfg, params)[0] if FLAGS.drafter else None
+    try:
+        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        dparams = checkpoint.load_drafter(FLAGS.drafter, cfg, params)[0] if FLAGS.drafter else None
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
     if FLAGS.dtype:
         cfg = vla.VLAConfig(**{**cfg.__dict__, "dtype": FLAGS.dtype})
     device = jax.devices()[0]
@@ -126,4 +134,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

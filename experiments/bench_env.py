@@ -24,9 +24,11 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import robot, scene
 from envs.env import EnvConfig, TabletopEnv
 from envs.ik import ControlConfig
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "16", "256", "1024"], "Parallel env counts to time.")
+cli.positive_int_list("batch_sizes")
 flags.DEFINE_integer("steps", 20, "Control steps per timed call (one lax.scan).")
 flags.DEFINE_integer("reps", 3, "Timed calls per batch size.")
 flags.DEFINE_integer("c_steps", 300, "Control steps of the MuJoCo C loop.")
@@ -120,4 +122,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -39,20 +39,25 @@ from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.timing import median_seconds, wall_seconds
 from heisd_jax import checkpoint, cost_model, methods, results_io, retrieval, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
                     "Methods (as in experiments.sweep); AR is always timed first as the baseline.")
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
 flags.DEFINE_list("batch_sizes", ["1", "256"], "Batch sizes.")
+cli.positive_int_list("batch_sizes")
 flags.DEFINE_integer("record_envs", 256, "Recorded envs (>= the largest batch size).")
 flags.DEFINE_integer("steps", 120, "Recorded control steps per env.")
 flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollouts are recorded.")
 flags.DEFINE_integer("batch1_envs", 4, "Batch 1: replay this many recorded envs one after another.")
 flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE), "budget=auto: cost table directory ('' = none).")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_string("out", "", "JSON output path.")
@@ -268,4 +273,4 @@ def write(rows, query_ms):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

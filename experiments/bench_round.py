@@ -20,13 +20,17 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "16"], "Batch sizes.")
+cli.positive_int_list("batch_sizes")
 flags.DEFINE_string("trees", "4x2x8", "Trees TOPKxDEPTHxTOTAL, separated by '/' or ','.")
 flags.DEFINE_integer("reps", 7, "Back-to-back pairs per measurement (median).")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 
 
 def measure(tp, dp, cfg: vla.VLAConfig, spec: sd.SpecConfig, batch: int, reps: int) -> dict:
@@ -74,4 +78,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -40,6 +40,7 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) in the loop.")
@@ -51,7 +52,9 @@ flags.DEFINE_list("batch_sizes", ["1", "64", "256", "1024"],
 flags.DEFINE_integer("episodes", 1024, "Episodes timed per batch size (rounded up to whole batches).")
 flags.DEFINE_integer("seq_episodes", 16, "Episodes timed in the sequential loop.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
 flags.DEFINE_bool("compile_only", False, "Compile the run's programs (fills JAX_COMPILATION_CACHE_DIR), time nothing.")
 
@@ -184,4 +187,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

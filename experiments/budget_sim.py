@@ -19,6 +19,7 @@ import numpy as np
 from absl import app, flags
 
 from heisd_jax import budget, cost_model
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("tables", [], "Cost-table JSON files (cost_model.CostTable, as cached by calibration).")
@@ -75,4 +76,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

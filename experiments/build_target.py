@@ -31,6 +31,7 @@ import time
 from pathlib import Path
 
 from absl import app, flags
+from experiments import cli
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -60,6 +61,7 @@ flags.DEFINE_bool("install", False, "Copy the final target, drafter and datastor
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view.")
 flags.DEFINE_string("start", "", "Start the DAgger rounds from this policy checkpoint instead of training a first "
                     "policy on the demonstrations (continuing an earlier build).")
+cli.existing_dir("start", "policy checkpoint")
 
 SKIPPABLE = ("eval", "drafter", "datastore", "calibration")
 ROOT = Path(__file__).resolve().parents[1]
@@ -287,4 +289,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

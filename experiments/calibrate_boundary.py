@@ -17,7 +17,6 @@ existing file is replaced only with --overwrite) with the per-bin table, and a p
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -30,12 +29,17 @@ import numpy as np
 
 from envs import demos, tasks as tasks_lib
 from heisd_jax import checkpoint, data, hybrid, kinematics, methods, results_io, retrieval, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("demos", "data/demos", "The demonstrations the datastore was built from.")
+cli.existing_dir("demos", "demonstrations dataset")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Datastore (experiments.build_datastore).")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Target VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("settings", "", "heisd settings as key=value,key=value (as in experiments.sweep).")
 flags.DEFINE_integer("max_steps", 20000, "At most this many held-out steps.")
 flags.DEFINE_integer("batch", 512, "Steps decoded at once.")
@@ -173,4 +177,4 @@ def _plot(table, tau_on, tau_off, path):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

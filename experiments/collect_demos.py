@@ -23,6 +23,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import camera, demos, expert, rollout, scene, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -33,6 +34,7 @@ flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).
 flags.DEFINE_bool("wrist", True, "Also render the wrist camera (tiled right of the agent view).")
 flags.DEFINE_string("policy", "", "DAgger: a VLA checkpoint that drives the episodes (greedy AR) while the expert "
                     "labels every visited state; its camera settings are used. Empty: the expert drives.")
+cli.existing_dir("policy", "policy checkpoint")
 flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's action instead of the policy's, "
                    "per env and step.")
 flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the executed motion actions (diversity); "
@@ -45,7 +47,10 @@ flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (onl
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+    try:
+        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
     for name in ("episodes_per_task", "num_envs", "image_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
@@ -135,4 +140,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -11,7 +11,6 @@ settings is refused, never overwritten (use another --out).
 
 from __future__ import annotations
 
-import json
 import os
 import time
 
@@ -23,6 +22,7 @@ from envs.env import TabletopEnv
 import jax
 
 from heisd_jax import budget, cost_model, evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
@@ -32,8 +32,11 @@ flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the fi
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Speculative methods: the drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "retrieval/heisd: the retrieval datastore.")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_enum("acceptance", None, list(spec_decode.ACCEPTANCE),
                   "Drafter trees: acceptance rule (default: strict for drafter, token_relaxed for retrieval/heisd).")
 flags.DEFINE_integer("relax_bins", None, "token_relaxed: accept a draft within this many bins of the target's choice.")
@@ -91,8 +94,8 @@ def method_settings() -> dict:
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
     try:
+        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
         sharding.check_batch(cfg.num_envs, sharding.env_mesh())
     except ValueError as e:
@@ -107,8 +110,8 @@ def main(argv):
         if key != "checkpoint_path":
             name = key.removesuffix("_path")
             settings[name] = os.path.abspath(paths[name])
-    done = results_io.load_resumable(FLAGS.out, settings)
     try:
+        done = results_io.load_resumable(FLAGS.out, settings)
         env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
@@ -167,4 +170,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

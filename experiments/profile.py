@@ -37,6 +37,7 @@ import numpy as np
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "heisd", ["ar", "drafter", "retrieval", "heisd"], "Decoding method.")
@@ -46,8 +47,11 @@ flags.DEFINE_integer("batch", 16, "Envs decoded together.")
 flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Write a jax.profiler trace of 3 steps here.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
 
@@ -195,4 +199,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -14,6 +14,7 @@ from pathlib import Path
 from absl import app, flags
 
 from heisd_jax import results_io
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("plots", "", "Directory for PNG plots (needs matplotlib: pip install -e '.[plots]').")
@@ -114,4 +115,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

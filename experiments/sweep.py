@@ -32,6 +32,7 @@ import mujoco
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("config", "", "JSON file with any of: methods, suites, tasks, episodes, num_envs, seeds.")
@@ -42,8 +43,11 @@ flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
 flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore (retrieval, heisd).")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
 
@@ -161,4 +165,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

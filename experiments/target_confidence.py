@@ -29,9 +29,11 @@ from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import checkpoint, methods, results_io, vla, vla_policy
 from heisd_jax.tokenizer import ACTION_DIM
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle through.")
 flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is compared against).")
 flags.DEFINE_integer("steps", 60, "Control steps recorded.")
@@ -115,4 +117,4 @@ def _greedy_probs(params, cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

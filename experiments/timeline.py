@@ -26,6 +26,7 @@ import numpy as np
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import methods, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("task", "pick_red_block", "Task name.")
@@ -34,8 +35,11 @@ flags.DEFINE_enum("method", "heisd", ["retrieval", "heisd"], "Hybrid method.")
 flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value.")
 flags.DEFINE_integer("steps", 0, "Control steps (default: the task's limit).")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
+cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("out", "results/timeline.png", "PNG path (the numbers go to the same name, .json).")
 
 MODES = (("retrieval_verified", "retrieval, verified", "tab:blue"), ("skipped", "retrieval, skipped", "tab:green"),
@@ -98,4 +102,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

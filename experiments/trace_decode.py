@@ -32,9 +32,11 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla, vla_policy
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["256", "1024"], "Batch sizes.")
+cli.positive_int_list("batch_sizes")
 flags.DEFINE_string("tree", "4x2x8", "The HeiSD decode's draft tree, TOPKxDEPTHxTOTAL.")
 flags.DEFINE_integer("reps", 5, "Timed calls per function (median).")
 flags.DEFINE_integer("trace_calls", 2, "Calls per function inside its trace (0: no traces).")
@@ -43,7 +45,9 @@ flags.DEFINE_string("trace_dir", "/tmp/heisd_trace", "Where the traces go (one f
 flags.DEFINE_string("hlo_dir", "", "Also write each function's optimised HLO here.")
 flags.DEFINE_string("out", "", "Optional JSON with the timings and kernel summaries.")
 flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
+cli.existing_dir("checkpoint", "policy checkpoint")
 flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
+cli.existing_dir("drafter", "drafter checkpoint")
 
 
 def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int):
@@ -115,4 +119,4 @@ def main(argv):
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -26,16 +26,20 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from envs import demos
 from heisd_jax import checkpoint, data, train, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
+from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("model", "vla", ["vla", "drafter"], "What to train: the target VLA, or an EAGLE drafter for the "
                   "target of --target (frozen).")
 flags.DEFINE_string("target", str(vla_policy.DEFAULT_CHECKPOINT), "--model=drafter: the target VLA checkpoint.")
+cli.existing_dir("target", "policy checkpoint")
 flags.DEFINE_list("demos", ["data/demos"], "Demonstration datasets (experiments.collect_demos), comma-separated; "
                   "validation uses the held-out episodes of the first.")
 flags.DEFINE_string("init", "", "--model=vla: start from this policy checkpoint's parameters and tokenizer.")
+cli.existing_dir("init", "policy checkpoint")
 flags.DEFINE_enum("compute_dtype", "bfloat16", ["float32", "bfloat16"], "Activation dtype while training (parameters "
                   "and optimizer state stay float32; the exported policy computes in float32).")
 flags.DEFINE_string("out", "runs/vla", "Run directory (training state, log).")
@@ -188,15 +192,21 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     out = Path(FLAGS.out)
-    out.mkdir(parents=True, exist_ok=True)
     try:
+        for path in FLAGS.demos:
+            demos.DemoDataset(path)
+        for name in ("init",) if FLAGS.model == "vla" else ("target",):
+            path = getattr(FLAGS, name)
+            if path and not Path(path).is_dir():
+                raise FileNotFoundError(f"--{name} {path}: no checkpoint there")
         cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
                                 image_shift=FLAGS.image_shift)
-    except ValueError as e:
+    except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
+    out.mkdir(parents=True, exist_ok=True)
     (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg)
 
 
 if __name__ == "__main__":
-    app.run(main)
+    cli.run(main)

@@ -1,0 +1,39 @@
+"""A user's mistake on the command line: one line naming the problem, exit status 2, no
+traceback and no usage text, before anything loads or compiles."""
+
+import subprocess
+import sys
+
+import pytest
+
+CASES = [
+    ("evaluate", ["--suites=nope"], "unknown suite"),
+    ("evaluate", ["--episodes=-1"], "episodes"),
+    ("evaluate", ["--method=ar", "--top_k=4"], "--method=ar takes none of --top_k"),
+    ("evaluate", ["--method=ar", "--checkpoint=/nonexistent/vla"], "no policy checkpoint there"),
+    ("evaluate", ["--method=nope"], "ar|drafter|expert|heisd|retrieval"),
+    ("bench_decode", ["--batch_sizes=1,x"], "positive integers"),
+    ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
+    ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
+]
+
+
+@pytest.mark.parametrize("module,args,expected", CASES, ids=[f"{m}:{' '.join(a)}" for m, a, _ in CASES])
+def test_bad_flag_is_one_line(module, args, expected, tmp_path):
+    r = subprocess.run([sys.executable, "-m", f"experiments.{module}", *args], capture_output=True, text=True,
+                       timeout=120)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    assert len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"python -m experiments.{module}: error: ")
+    assert expected in lines[0]
+
+
+def test_bad_flag_writes_nothing(tmp_path):
+    out = tmp_path / "eval.json"
+    out.write_text("{}")
+    r = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--suites=nope", f"--out={out}"],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2
+    assert out.read_text() == "{}"
