@@ -1,6 +1,9 @@
 """Batch-size entries of bench_throughput (`sharding.parse_batch_devices`): B (the most
 devices dividing B) or B:D (B envs over the first D devices); every bad entry is refused
-with its reason before anything runs."""
+with its reason before anything runs; and the evaluator's check that the env batch divides
+over the devices it is sharded on."""
+
+import types
 
 import pytest
 
@@ -20,3 +23,12 @@ def test_batch_sizes_parse_to_envs_and_devices():
 def test_bad_batch_sizes_are_refused_with_the_reason(entry, reason):
     with pytest.raises(ValueError, match=reason):
         sharding.parse_batch_devices(["8", entry], available=2)
+
+
+def test_num_envs_must_divide_over_the_mesh():
+    """The evaluator's check (a stand-in mesh: it reads only the device count)."""
+    four = types.SimpleNamespace(size=4)
+    sharding.check_batch(8, four)
+    sharding.check_batch(3, types.SimpleNamespace(size=1))  # one device takes any batch
+    with pytest.raises(ValueError, match="num_envs=6 is not divisible by the 4 devices.*multiple of 4"):
+        sharding.check_batch(6, four)

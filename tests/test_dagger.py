@@ -1,4 +1,10 @@
-"""DAgger collection: the teacher labels the states the policy visits; beta mixes who acts."""
+"""DAgger collection: the teacher labels the states the policy visits; beta mixes who acts;
+the entry points that collect and build refuse bad settings before they start."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -59,3 +65,17 @@ def test_collect_demos_rejects_beta_without_policy(tmp_path):
                                                                                           match=r"\[0, 1\]"):
         collect_demos.main([])
     assert not (tmp_path / "d").exists()
+
+
+def test_build_target_refuses_a_work_dir_built_with_other_settings(tmp_path):
+    """A rerun resumes only the build its settings describe: other settings are refused
+    before any stage runs, and the record of the earlier build is kept."""
+    state = tmp_path / "build.json"
+    state.write_text(json.dumps({"settings": {"rounds": 7}, "stages": {"demos": {"seconds": 1.0}}}))
+    before = state.read_text()
+    r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path}", "--rounds=1"],
+                       capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert r.returncode != 0 and "built with other settings" in r.stderr and "use another --work" in r.stderr, \
+        r.stderr[-3000:]
+    assert state.read_text() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["build.json", "logs"]  # no stage started

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from envs import proprio, scene, tasks
 from envs.env import TabletopEnv
 
-from conftest import BATCH
+BATCH = 2  # envs per batch: every test here starts 2, so the session's compiled reset/step are reused
 
 
 def test_mjcf_loads_in_mujoco_and_mjx():
@@ -21,6 +21,7 @@ def test_mjcf_loads_in_mujoco_and_mjx():
     assert mx.ngeom == m.ngeom
     d = mujoco.MjData(m)
     mujoco.mj_step(m, d)
+    assert d.time == pytest.approx(m.opt.timestep) and np.all(np.isfinite(d.qpos))
 
 
 def test_every_task_has_a_valid_instruction_and_goals():

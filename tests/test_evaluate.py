@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import checkpoint, methods, vla, vla_policy
+from heisd_jax import checkpoint, evaluate as ev, methods, results_io, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 
 # Tiny, but at the env camera's 64 px so it plugs into the real evaluator.
@@ -95,3 +95,37 @@ def test_shipped_drafter_policy_in_strict_mode_acts_like_ar(compiled):
     a_ar, _, _ = jax.jit(ar_pol.act)(ar_pol.params, state, (), None)
     np.testing.assert_array_equal(np.asarray(a_spec), np.asarray(a_ar))
     assert np.all(np.asarray(stats["target_passes"]) <= 7) and np.all(np.asarray(stats["drafter_passes"]) >= 1)
+
+
+def test_eval_config_rejects_out_of_range_settings():
+    with pytest.raises(ValueError, match="episodes_per_task must be in 1..50, got 0"):
+        ev.EvalConfig(episodes_per_task=0)
+    with pytest.raises(ValueError, match="episodes_per_task must be in 1..50, got 51"):
+        ev.EvalConfig(episodes_per_task=51)
+    with pytest.raises(ValueError, match="num_envs must be >= 1, got 0"):
+        ev.EvalConfig(num_envs=0)
+
+
+def test_an_interrupted_run_resumes_with_exactly_its_missing_episodes(compiled):
+    """What a resumed run does: the episodes recorded as None, missing from a task's list, or
+    of a task not yet started; nothing that is recorded."""
+    env = compiled.env
+    names = [t.name for t in env.tasks]
+    cfg = ev.EvalConfig(episodes_per_task=3, num_envs=2)
+    rec = {"success": True, "steps": 5, "failure": None}
+    done = {names[0]: [rec, None, rec], names[1]: [rec], **{n: [rec] * 3 for n in names[3:]}}
+    assert ev.pending_episodes(env, cfg, done) == [(0, 1), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    assert len(ev.pending_episodes(env, cfg, {})) == 3 * len(names)
+
+
+def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path):
+    """Refused before anything is built (the entry point, in its own process)."""
+    out = tmp_path / "eval.json"
+    results_io.write_json_atomic(out, {"settings": {"method": "ar", "tasks": ["left_block_plate"]},
+                                       "episodes": {"left_block_plate": [{"success": True}]}})
+    before = out.read_text()
+    r = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--method=expert", "--tasks=left_block_plate",
+                        "--episodes=1", "--num_envs=1", f"--out={out}"], capture_output=True, text=True,
+                       cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
+    assert out.read_text() == before

@@ -46,5 +46,8 @@ def test_unknown_method_lists_valid_methods():
         methods.make_policy("greedy", None)
 
 
-def test_expert_phase_names_cover_all_phases():
-    assert len(expert.PHASE_NAMES) == expert.PUSH_RETREAT + 1
+def test_expert_phase_names_name_each_phase_constant():
+    """PHASE_NAMES[phase] is the phase constant's own name (failure analyses print them)."""
+    phases = {n: getattr(expert, n.upper()) for n in expert.PHASE_NAMES}
+    assert sorted(phases.values()) == list(range(len(expert.PHASE_NAMES)))  # one name per phase, no gap
+    assert all(expert.PHASE_NAMES[v] == n for n, v in phases.items())

@@ -21,8 +21,10 @@ def test_seq_relaxed_accepts_within_budget_and_stops_at_the_right_index():
     # one slightly-off dimension does not cut the action short, unlike token-wise r=3
     d = jnp.array([100, 108, 100, 100, 100, 100, 255])
     assert int(acc.seq_relaxed_length(d, t, cfg)) == 7
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="0 <= r_max < 256"):
         acc.SeqRelaxedConfig(r_max=300)
+    with pytest.raises(ValueError, match="r_seq >= 0"):
+        acc.SeqRelaxedConfig(r_seq=-1)
 
 
 def test_verify_skip_is_bounded_and_only_in_retrieval_mode():

@@ -53,9 +53,12 @@ def test_damage_before_the_end_and_foreign_sweeps_are_refused(tmp_path):
     with pytest.raises(ValueError, match="line 2 is damaged"):
         results_io.SweepFile(bad, SWEEP)
     assert bad.read_text() == before  # untouched
+    before = p.read_text()
     with pytest.raises(ValueError, match="other settings"):
         results_io.SweepFile(p, {"episodes": 50, "tasks": None})
+    assert p.read_text() == before  # refused, never overwritten
     other = tmp_path / "other.json"
     other.write_text('{"settings": {}}\n')
     with pytest.raises(ValueError, match="not a heisd-jax-sweep-v1"):
         results_io.SweepFile(other, SWEEP)
+    assert other.read_text() == '{"settings": {}}\n'

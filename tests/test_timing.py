@@ -3,6 +3,8 @@ jitted call shows up on a device timeline, with its time split per call."""
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+import pytest
 
 from heisd_jax import timing
 
@@ -11,13 +13,17 @@ def test_kernel_summary_of_a_traced_call(tmp_path):
     f = jax.jit(lambda x: jnp.tanh(x @ x.T).sum(0))
     x = jnp.ones((384, 384), jnp.float32)
     jax.block_until_ready(f(x))  # compiled before the trace
-    one = timing.kernel_summary(timing.trace_calls(lambda: f(x), 1, tmp_path / "one"), calls=1, top=5)
-    three = timing.kernel_summary(timing.trace_calls(lambda: f(x), 3, tmp_path / "three"), calls=3, top=5)
-    for summary in (one, three):
-        assert summary, "no device timeline in the trace"
-        for line in summary.values():
-            assert line["total_ms"] >= 0 and len(line["top"]) <= 5
-            assert [ms for _, ms in line["top"]] == sorted((ms for _, ms in line["top"]), reverse=True)
-    # Per-call figures: three calls summarised per call are of the size of one call, not 3x.
-    total = lambda s: sum(line["total_ms"] for line in s.values())  # noqa: E731
-    assert 0 < total(three) < 2.5 * total(one) + 1.0
+    path = timing.trace_calls(lambda: f(x), 3, tmp_path / "three")
+    assert path is not None and path.name == "perfetto_trace.json.gz", "the profiler wrote no Perfetto trace"
+    whole = timing.kernel_summary(path, calls=1, top=5)
+    per_call = timing.kernel_summary(path, calls=3, top=5)
+    assert whole, "no device timeline in the trace"
+    for line in whole.values():
+        assert line["total_ms"] > 0 and 1 <= len(line["top"]) <= 5
+        assert [ms for _, ms in line["top"]] == sorted((ms for _, ms in line["top"]), reverse=True)
+    # Per-call figures: the same events, each divided by the number of calls.
+    assert per_call.keys() == whole.keys()
+    for name, line in whole.items():
+        assert per_call[name]["total_ms"] == pytest.approx(line["total_ms"] / 3)
+        assert [k for k, _ in per_call[name]["top"]] == [k for k, _ in line["top"]]
+        np.testing.assert_allclose([ms for _, ms in per_call[name]["top"]], [ms / 3 for _, ms in line["top"]])
