@@ -1,0 +1,87 @@
+"""The public decode call (`vla.decode_action`): its documented example runs, it equals the
+decoding functions it wraps, and bad observations fail at the boundary with the field,
+the given and the expected shape."""
+
+import re
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import heisd_jax
+import tiny_models
+from heisd_jax import spec_decode, vla
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = tiny_models.CFG  # image [16, 16, 3], text_len 20, text_vocab 36, proprio 8
+
+
+def test_documented_example_decodes_the_shipped_checkpoint(monkeypatch):
+    blocks = re.findall(r"```python\n(.*?)```", (ROOT / "docs" / "decode_api.md").read_text(), re.S)
+    assert len(blocks) == 1
+    monkeypatch.chdir(ROOT)
+    ns = {}
+    exec(compile(blocks[0], "docs/decode_api.md", "exec"), ns)  # noqa: S102
+    tokens, cfg, b = ns["tokens"], ns["cfg"], ns["B"]
+    assert tokens.shape == (b, 7) and tokens.dtype == jnp.int32
+    bins = np.asarray(tokens) - cfg.first_action_id
+    assert np.all((bins >= 0) & (bins < 256))
+    assert ns["actions"].shape == (b, 7) and np.all(np.abs(np.asarray(ns["actions"])) <= 1.0)
+    assert np.all(np.asarray(ns["stats"]["target_passes"]) == 7)
+    np.testing.assert_array_equal(ns["sd_tokens"], tokens)  # strict speculative decoding == AR
+    assert np.all(np.asarray(ns["sd_stats"]["target_passes"]) <= 7)
+
+
+def test_decode_action_equals_ar_and_strict_speculative_decoding(tiny_hybrid):
+    params, obs, ar_tokens = tiny_hybrid
+    tokens, stats = heisd_jax.decode_action(params["target"], CFG, obs)
+    np.testing.assert_array_equal(tokens, ar_tokens)
+    assert tokens.dtype == jnp.int32 and set(stats) == {"target_passes", "tokens"}
+    assert stats["target_passes"].shape == (obs.image.shape[0],)
+    spec = spec_decode.SpecConfig(top_k=4, depth=3, total_tokens=8)
+    sd, sd_stats = heisd_jax.decode_action(params, CFG, obs, spec=spec)
+    np.testing.assert_array_equal(sd, ar_tokens)
+    assert {"target_passes", "drafter_passes", "rounds", "tokens"} <= set(sd_stats)
+
+
+def _obs(b=2, **override):
+    o = tiny_models.obs(0, batch=b)
+    return o.replace(**{k: jnp.asarray(v) for k, v in override.items()})
+
+
+@pytest.mark.parametrize("override, message", [
+    (dict(image=np.zeros((2, 32, 32, 3), np.uint8)), r"observation.image has shape \[2, 32, 32, 3\], expected \[B, 16, 16, 3\]$"),
+    (dict(image=np.zeros((2, 3, 16, 16), np.uint8)), r"observation.image has shape \[2, 3, 16, 16\], expected \[B, 16, 16, 3\] \(channels first"),
+    (dict(image=np.zeros((16, 16, 3), np.uint8)), r"observation.image has shape \[16, 16, 3\], expected \[B, 16, 16, 3\]"),
+    (dict(instruction=np.ones((2, 12), np.int32)), r"observation.instruction has shape \[2, 12\], expected \[B, 20\]"),
+    (dict(proprio=np.zeros((2, 7), np.float32)), r"observation.proprio has shape \[2, 7\], expected \[B, 8\]"),
+    (dict(proprio=np.zeros((3, 8), np.float32)), r"disagree on the batch size B: image \[2, 16, 16, 3\], instruction \[2, 20\], proprio \[3, 8\]"),
+    (dict(image=np.zeros((2, 16, 16, 3), np.float32)), r"observation.image has dtype float32, expected uint8"),
+    (dict(proprio=np.array([[0.0] * 8, [np.nan] + [0.0] * 7], np.float32)), r"observation.proprio has non-finite .* rows \[1\]"),
+    (dict(proprio=np.full((2, 8), np.inf, np.float32)), r"observation.proprio has non-finite .* rows \[0, 1\]"),
+    (dict(instruction=np.full((2, 20), 36, np.int32)), r"observation.instruction has token ids in \[36, 36\], expected \[0, 36\)"),
+    (dict(instruction=np.full((2, 20), -1, np.int32)), r"observation.instruction has token ids in \[-1, -1\], expected \[0, 36\)"),
+])
+def test_bad_observations_are_refused_naming_the_field(override, message):
+    with pytest.raises(ValueError, match=message):
+        vla.check_observation(CFG, _obs(**override))
+
+
+def test_decode_entries_check_before_the_model():
+    params = jax.eval_shape(lambda: vla.init_params(CFG, jax.random.PRNGKey(0)))  # never reached
+    bad = _obs(image=np.zeros((2, 3, 16, 16), np.uint8))
+    for call in (lambda: heisd_jax.decode_action(params, CFG, bad), lambda: vla.ar_decode(params, CFG, bad)):
+        with pytest.raises(ValueError, match="observation.image has shape"):
+            call()
+    with pytest.raises(TypeError, match="Observation"):
+        vla.check_observation(CFG, {"image": bad.image})
+
+
+def test_value_checks_skip_tracers_and_shape_checks_do_not():
+    nan = _obs(proprio=np.full((2, 8), np.nan, np.float32))
+    assert jax.jit(lambda o: jnp.asarray(vla.check_observation(CFG, o)))(nan) == 2
+    with pytest.raises(ValueError, match="observation.proprio has shape"):
+        jax.jit(lambda o: vla.check_observation(CFG, o))(_obs(proprio=np.zeros((2, 9), np.float32)))
+    assert vla.check_observation(CFG, _obs()) == 2

@@ -1,0 +1,55 @@
+"""The decode core imports and decodes without the simulator, and its text constants agree
+with the env's vocabulary."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import envs.env
+from envs import language
+from heisd_jax import observation, vla
+
+CORE = ("tokenizer", "observation", "vla", "drafter", "spec_decode", "retrieval", "acceptance", "kinematics", "hybrid",
+        "budget", "checkpoint")
+
+CHILD = """
+import json, os, sys
+flags = os.environ.get("XLA_FLAGS")
+import heisd_jax
+from heisd_jax import {core}
+import jax, jax.numpy as jnp, numpy as np
+cfg = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=1, n_heads=4, mlp_dim=64)
+params = vla.init_params(cfg, jax.random.PRNGKey(0))
+obs = heisd_jax.Observation(image=np.zeros((2, *cfg.image_shape), np.uint8),
+                            instruction=np.ones((2, cfg.text_len), np.int32), proprio=np.zeros((2, 8), np.float32))
+tokens, stats = heisd_jax.decode_action(params, cfg, obs)
+print(json.dumps(dict(sim=sorted(m for m in sys.modules if m.split(".")[0] in ("envs", "mujoco")),
+                      flags_kept=os.environ.get("XLA_FLAGS") == flags, shape=list(tokens.shape),
+                      passes=np.asarray(stats["target_passes"]).tolist())))
+"""
+
+
+def test_decode_core_runs_without_envs_mujoco_or_xla_flag_changes():
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # unset: any flag an import adds would show
+    env["JAX_PLATFORMS"] = "cpu"
+    r = subprocess.run([sys.executable, "-c", CHILD.format(core=", ".join(CORE))], env=env, capture_output=True,
+                       text=True, timeout=300, cwd=Path(__file__).resolve().parents[1])
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["sim"] == []
+    assert out["flags_kept"]
+    assert out["shape"] == [2, 7] and out["passes"] == [7.0, 7.0]
+
+
+def test_text_constants_match_the_env_vocabulary():
+    cfg = vla.VLAConfig()
+    assert cfg.text_vocab == len(language.VOCAB) == observation.TEXT_VOCAB
+    assert cfg.text_len == language.MAX_INSTRUCTION_TOKENS == observation.TEXT_LEN
+    assert language.WORD_TO_ID[language.PAD] == observation.PAD_ID
+    assert language.encode("pick up the red block")[-1] == observation.PAD_ID
+
+
+def test_env_and_model_share_one_observation_type():
+    assert envs.env.Observation is vla.Observation is observation.Observation
