@@ -42,6 +42,7 @@ from heisd_jax import checkpoint, cost_model, methods, results_io, retrieval, vl
 from experiments import cli
 
 FLAGS = flags.FLAGS
+cli.define_calibrate_costs()
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
                     "Methods (as in experiments.sweep); AR is always timed first as the baseline.")
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
@@ -215,7 +216,8 @@ def main(argv):
             else:
                 policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                              datastore=FLAGS.datastore, batch_size=b,
-                                             cost_cache=FLAGS.cost_cache or None, **settings)
+                                             cost_cache=FLAGS.cost_cache or None,
+                                             calibrate_costs=FLAGS.calibrate_costs, **settings)
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
             fn = replay_fn(policy)

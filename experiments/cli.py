@@ -69,3 +69,11 @@ def existing_dir(flag_name: str, what: str) -> None:
         return True
 
     flags.register_validator(flag_name, check)
+
+
+def define_calibrate_costs() -> None:
+    """--calibrate_costs, for the entry points that build methods with budget=auto."""
+    if "calibrate_costs" in flags.FLAGS:
+        return
+    flags.DEFINE_bool("calibrate_costs", False, "budget=auto: where no decode-cost table is cached for this device, "
+                      "model, settings and batch size, measure it now (1-3 min, then cached) instead of failing.")

@@ -25,6 +25,7 @@ from heisd_jax import budget, cost_model, evaluate as ev, hybrid, methods, resul
 from experiments import cli
 
 FLAGS = flags.FLAGS
+cli.define_calibrate_costs()
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
@@ -115,7 +116,8 @@ def main(argv):
         env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
-                                     cost_cache=FLAGS.cost_cache or None, **kwargs)
+                                     cost_cache=FLAGS.cost_cache or None,
+                                     calibrate_costs=FLAGS.calibrate_costs, **kwargs)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     n_total = len(task_list) * cfg.episodes_per_task

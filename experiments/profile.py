@@ -40,6 +40,7 @@ from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, vla, vla_po
 from experiments import cli
 
 FLAGS = flags.FLAGS
+cli.define_calibrate_costs()
 flags.DEFINE_enum("method", "heisd", ["ar", "drafter", "retrieval", "heisd"], "Decoding method.")
 flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value (as in experiments.sweep).")
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
@@ -105,7 +106,8 @@ def main(argv):
     env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                     datastore=FLAGS.datastore, batch_size=FLAGS.batch, **settings)
+                                     datastore=FLAGS.datastore, batch_size=FLAGS.batch,
+                                     calibrate_costs=FLAGS.calibrate_costs, **settings)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     meta = policy.meta

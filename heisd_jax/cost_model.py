@@ -29,9 +29,10 @@ is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real
 it stays cached; delete the file (or pass another cache directory) to measure again.
 
 A table is tied to its key (device, platform, jax version, model fingerprints, dtype, batch
-size, options, number of candidates). `load_or_calibrate` reads the cached file only if its
-key equals the current one; otherwise (another device, model or batch size, a damaged file)
-it measures again and replaces the file atomically.
+size, options, number of candidates). `load_cached` reads the cached file only if its key
+equals the current one. Measuring is always asked for explicitly (`load_or_calibrate(...,
+measure=True)`, the entry points' --calibrate_costs): a method never spends minutes
+calibrating behind a user's back.
 """
 
 from __future__ import annotations
@@ -255,24 +256,49 @@ def cache_file(directory: str | Path, key: dict) -> Path:
     return Path(directory) / f"costs_{digest}.json"
 
 
-def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
-                      directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print) -> CostTable:
-    """The cached table for this key, or a fresh calibration (then cached). directory=None:
-    always calibrate, write nothing."""
+class MissingCostTable(ValueError):
+    """No cost table is cached for this device, model, settings and batch size."""
+
+
+def load_cached(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
+                directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print) -> CostTable | None:
+    """The cached table for this key, or None (logging why: none, another key, unreadable)."""
+    if directory is None:
+        return None
     key = table_key(params, cfg, hcfg, batch)
-    path = cache_file(directory, key) if directory is not None else None
-    if path is not None and path.exists():
-        try:
-            raw = json.loads(path.read_text())
-            table = CostTable(**raw)
-            if table.key == key and len(table.fixed_ms) == len(key["options"]):
-                log(f"cost table from {path}")
-                return table
-            log(f"cost table {path} was measured for another setting ({_diff(table.key, key)}): measuring again")
-        except (OSError, ValueError, TypeError) as e:
-            log(f"cost table {path} is unreadable ({e}): measuring again")
+    path = cache_file(directory, key)
+    if not path.exists():
+        return None
+    try:
+        table = CostTable(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as e:
+        log(f"cost table {path} is unreadable ({e})")
+        return None
+    if table.key != key or len(table.fixed_ms) != len(key["options"]):
+        log(f"cost table {path} was measured for another setting ({_diff(table.key, key)})")
+        return None
+    log(f"cost table from {path}")
+    return table
+
+
+def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
+                      directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print,
+                      measure: bool = True) -> CostTable:
+    """The cached table for this key; else, with `measure`, a fresh calibration (1-3 min,
+    then cached in `directory`; None: never cached), or without it `MissingCostTable`."""
+    table = load_cached(params, cfg, hcfg, batch, directory, log)
+    if table is not None:
+        return table
+    if not measure:
+        where = f"in {directory}" if directory is not None else "(no cost cache directory given)"
+        raise MissingCostTable(
+            f"budget=auto needs a decode-cost table for this device, model, settings and batch size {batch}, and none "
+            f"is cached {where}: rerun with --calibrate_costs to measure it now (1-3 minutes on an idle device; cached "
+            f"for later runs), or use budget=fixed")
+    log(f"measuring the decode-cost table at batch {batch} (1-3 minutes)")
     table = calibrate(params, cfg, hcfg, batch)
-    if path is not None:
+    if directory is not None:
+        path = cache_file(directory, table.key)
         results_io.write_json_atomic(path, dataclasses.asdict(table))
         log(f"cost table measured in {table.seconds:.1f}s, saved to {path}")
     return table

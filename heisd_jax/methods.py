@@ -190,10 +190,11 @@ def _hybrid_method(name: str):
     def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
              drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER,
              datastore_path: str | Path = vla_policy.DEFAULT_DATASTORE, batch_size: int | None = None,
-             cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, log: Callable[[str], None] = print,
-             **settings) -> Policy:
-        """batch_size: rows per device of the decode step (budget=auto measures its costs at
-        that size, cached in `cost_cache`; None there: measured, never cached)."""
+             cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, calibrate_costs: bool = False,
+             log: Callable[[str], None] = print, **settings) -> Policy:
+        """batch_size: rows per device of the decode step. budget=auto loads the decode-cost
+        table for that size from `cost_cache`; where none is cached it fails, unless
+        `calibrate_costs` asks to measure it now (then cached; cost_cache None: never cached)."""
         settings = check_settings(name, settings)
         dtype = settings.pop("dtype", "float32")
         params, cfg, tok = _load_target(env, checkpoint_path)
@@ -212,7 +213,8 @@ def _hybrid_method(name: str):
             if batch_size is None or batch_size < 1:
                 raise ValueError(f"budget=auto measures decode costs at the batch size in use: pass batch_size "
                                  f"(rows per device), got {batch_size}")
-            table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log)
+            table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log,
+                                                  measure=calibrate_costs)
             all_params["costs"] = table.costs()
         policy = vla_policy.hybrid_policy(name, all_params, cfg, tok, hcfg, key_spec, env.global_index)
         return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table))
@@ -251,16 +253,17 @@ CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "draft
 def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = None,
                 drafter: str | Path | None = None, datastore: str | Path | None = None,
                 batch_size: int | None = None, cost_cache: str | Path | None = cost_model.DEFAULT_CACHE,
-                **settings) -> Policy:
+                calibrate_costs: bool = False, **settings) -> Policy:
     """The policy of method `name`; `checkpoint`/`drafter`/`datastore` (default: the shipped
     ones) reach only the methods that load them, `settings` are the method's own options;
-    batch_size (rows per device) and cost_cache reach the methods with a draft budget."""
+    batch_size (rows per device), cost_cache and calibrate_costs (measure a missing
+    decode-cost table now instead of failing) reach the methods with a draft budget."""
     if name not in METHODS:
         raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
     given = {"checkpoint_path": checkpoint, "drafter_path": drafter, "datastore_path": datastore}
     paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
     if name in HYBRID_DEFAULTS:
-        paths.update(batch_size=batch_size, cost_cache=cost_cache)
+        paths.update(batch_size=batch_size, cost_cache=cost_cache, calibrate_costs=calibrate_costs)
     return METHODS[name](env, **paths, **settings)
 
 

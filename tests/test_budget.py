@@ -243,13 +243,18 @@ def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     raw["key"]["device"] = "another GPU"
     files[0].write_text(json.dumps(raw))
     cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
-    assert measured == [2] and "another setting" in logs[-2] and "device" in logs[-2]
+    assert measured == [2] and "another setting" in logs[-3] and "device" in logs[-3]
     files[0].write_text("{not json")  # a damaged file
     cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
-    assert measured == [2, 2] and "unreadable" in logs[-2]
+    assert measured == [2, 2] and "unreadable" in logs[-3]
     assert json.loads(files[0].read_text())["key"]["device"] == jax.devices()[0].device_kind
     cost_model.load_or_calibrate(params, CFG, one, 8, tmp_path, logs.append)  # another batch size: its own table
     assert measured == [2, 2, 8] and len(list(tmp_path.glob("costs_*.json"))) == 2
+    # Measuring is asked for explicitly: without it a missing table is an error naming the flag.
+    with pytest.raises(cost_model.MissingCostTable, match="--calibrate_costs"):
+        cost_model.load_or_calibrate(params, CFG, one, 4, tmp_path, logs.append, measure=False)
+    assert measured == [2, 2, 8]
+    assert cost_model.load_or_calibrate(params, CFG, one, 8, tmp_path, logs.append, measure=False).key["batch"] == 8
 
 
 def test_bad_budget_settings_are_refused():
