@@ -61,8 +61,9 @@ def test_collect_demos_rejects_beta_without_policy(tmp_path):
     flags.FLAGS.mark_as_parsed()
     with flagsaver.flagsaver(beta=0.5, out=str(tmp_path / "d")), pytest.raises(app.UsageError, match="--policy"):
         collect_demos.main([])
-    with flagsaver.flagsaver(beta=1.5, policy="x", out=str(tmp_path / "d")), pytest.raises(app.UsageError,
-                                                                                          match=r"\[0, 1\]"):
+    policy = str(tmp_path)  # an existing directory (the flag's validator refuses a missing one)
+    with flagsaver.flagsaver(beta=1.5, policy=policy, out=str(tmp_path / "d")), pytest.raises(app.UsageError,
+                                                                                             match=r"\[0, 1\]"):
         collect_demos.main([])
     assert not (tmp_path / "d").exists()
 
