@@ -1,5 +1,11 @@
-"""HeiSD's sequence-wise relaxed acceptance and verify-skip (HEISD.md sections 4-5; the rules
-are our design). Token-wise rules (strict, token_relaxed) live in `spec_decode.accept`.
+"""Acceptance rules: which drafted action tokens the target's greedy tokens accept.
+
+Token-wise (each drafted token on its own, Spec-VLA): `strict` (the same bin: lossless,
+speculative decoding equals AR token for token) and `token_relaxed` (within `relax_bins`
+bins). Sequence-wise for whole retrieved actions (HEISD.md section 5, our design):
+`seq_relaxed` bounds each token's bin distance and the weighted cumulative distance of the
+accepted prefix, and requires the gripper token to agree on open/closed. Verify-skip (HEISD.md
+section 4) decides when a retrieved action is executed without a target pass.
 """
 
 from __future__ import annotations
@@ -11,6 +17,20 @@ import jax.numpy as jnp
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 GRIPPER_DIM = ACTION_DIM - 1
+TOKEN_RULES = ("strict", "token_relaxed")  # drafter trees: each node accepted on its own
+ACTION_RULES = ("strict", "token_relaxed", "seq_relaxed")  # retrieved whole actions: an accepted prefix
+
+
+def check_rule(rule: str, valid: tuple[str, ...], what: str = "acceptance") -> None:
+    if rule not in valid:
+        raise ValueError(f"unknown {what} {rule!r}; valid: {', '.join(valid)}")
+
+
+def token_accepted(rule: str, relax_bins: int, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
+    """Token-wise rule on action bins (0..255): draft == target (strict) or within relax_bins."""
+    if rule == "strict":
+        return draft_bins == target_bins
+    return jnp.abs(draft_bins - target_bins) <= relax_bins
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,3 +85,14 @@ def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand
     top = cand_bins[:, : cfg.n_agree]
     agree = jnp.all(jnp.abs(top - top[:, :1]) <= cfg.r_agree, axis=(1, 2)) & jnp.all(valid[:, : cfg.n_agree], 1)
     return in_retrieval & (dist[:, 0] <= cfg.eps) & agree & last_whole & (skips < cfg.k_skip)
+
+
+def prefix_length(rule: str, relax_bins: int, seq: SeqRelaxedConfig, draft_bins: jnp.ndarray,
+                  target_bins: jnp.ndarray) -> jnp.ndarray:
+    """Accepted prefix length [...] of drafted actions [..., 7] against the target's greedy
+    bins [..., 7] (token i's conditioned on the draft's tokens before it), under `rule`
+    (one of ACTION_RULES)."""
+    if rule == "seq_relaxed":
+        return seq_relaxed_length(draft_bins, target_bins, seq)
+    ok = token_accepted(rule, relax_bins, draft_bins, target_bins)
+    return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)

@@ -45,7 +45,7 @@ from heisd_jax import acceptance as rules, budget as budget_lib, kinematics, ret
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 MODES = ("hybrid", "retrieval", "drafter")  # hybrid: kinematic boundary; else every step in that mode
-RETRIEVAL_ACCEPTANCE = ("strict", "token_relaxed", "seq_relaxed")
+RETRIEVAL_ACCEPTANCE = rules.ACTION_RULES
 VERIFY = ("prefill", "separate")
 CONTINUATION = ("drafter", "ar")  # what decodes the rest of an action after the prefill (and its accepted prefix)
 
@@ -118,18 +118,6 @@ class HybridConfig:
                              f"be <= {(cfg.cache_slots - cfg.prompt_len) // (ACTION_DIM - 1)}")
 
 
-def accepted_length(hcfg: HybridConfig, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
-    """Accepted prefix length [...] of drafted actions [..., 7] against the target's greedy
-    bins [..., 7] (token i's conditioned on the draft's tokens before it)."""
-    if hcfg.acceptance == "seq_relaxed":
-        return rules.seq_relaxed_length(draft_bins, target_bins, hcfg.seq)
-    if hcfg.acceptance == "strict":
-        ok = draft_bins == target_bins
-    else:
-        ok = jnp.abs(draft_bins - target_bins) <= hcfg.relax_bins
-    return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)
-
-
 def candidate_block(cand: jnp.ndarray):
     """Candidates [B, N, 7] (token ids) as a verification block of N parallel chains of
     their first 6 tokens (the 7th is only checked): tokens [B, 6N], depth [B, 6N] (token i
@@ -189,7 +177,7 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
         node_greedy = jnp.argmax(vla.action_logits(cfg, blogits), -1).reshape(b, n, c)
         target_bins = jnp.concatenate([jnp.broadcast_to(greedy1[:, None, None], (b, n, 1)), node_greedy], -1)
-        length = accepted_length(hcfg, cand - first_id, target_bins)
+        length = rules.prefix_length(hcfg.acceptance, hcfg.relax_bins, hcfg.seq, cand - first_id, target_bins)
         length = jnp.where(cand_valid & verify_rows[:, None], length, 0)
         best = jnp.argmax(length, 1)
         acc = jnp.max(length, 1)  # [B] 0..7

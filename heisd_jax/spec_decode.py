@@ -29,10 +29,10 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from heisd_jax import drafter, vla
+from heisd_jax import acceptance as rules, drafter, vla
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
-ACCEPTANCE = ("strict", "token_relaxed")
+ACCEPTANCE = rules.TOKEN_RULES
 
 
 @dataclasses.dataclass(frozen=True)
@@ -44,8 +44,7 @@ class SpecConfig:
     relax_bins: int = 0
 
     def __post_init__(self):
-        if self.acceptance not in ACCEPTANCE:
-            raise ValueError(f"unknown acceptance {self.acceptance!r}; valid: {', '.join(ACCEPTANCE)}")
+        rules.check_rule(self.acceptance, rules.TOKEN_RULES)
         if not 1 <= self.top_k <= N_BINS or self.depth < 1:
             raise ValueError(f"top_k must be in 1..{N_BINS} and depth >= 1, got top_k={self.top_k} depth={self.depth}")
         if not 1 <= self.total_tokens <= self.top_k * self.depth:
@@ -61,12 +60,6 @@ class SpecConfig:
             raise ValueError(f"a draft tree of {self.top_k}x{self.depth} nodes needs {need} cache slots, the model has "
                              f"{cfg.cache_slots}; lower top_k/depth")
 
-
-def accept(spec: SpecConfig, draft_bins: jnp.ndarray, target_bins: jnp.ndarray) -> jnp.ndarray:
-    """The token-wise acceptance rule on action bins (0..255)."""
-    if spec.acceptance == "strict":
-        return draft_bins == target_bins
-    return jnp.abs(draft_bins - target_bins) <= spec.relax_bins
 
 
 @jax.tree_util.register_dataclass
@@ -170,7 +163,8 @@ def verify(tparams, cfg: vla.VLAConfig, spec: SpecConfig, cache: vla.KVCache, ro
     pos_of = jnp.zeros(tree.bins.shape, jnp.int32).at[jnp.arange(b)[:, None], sel].set(1 + jnp.arange(n))
     par = jnp.take_along_axis(tree.parent, sel, 1)
     par_block = jnp.where(par < 0, 0, jnp.take_along_axis(pos_of, jnp.maximum(par, 0), 1))
-    ok = accept(spec, sel_bins, jnp.take_along_axis(greedy, par_block, 1))  # [B, n]
+    ok = rules.token_accepted(spec.acceptance, spec.relax_bins, sel_bins,
+                              jnp.take_along_axis(greedy, par_block, 1))  # [B, n]
     path_ok = jnp.all(~anc | ok[:, None, :], -1)  # every ancestor (and itself) accepted
     acc_depth = jnp.where(path_ok, sel_depth, 0)
     best = jnp.argmax(acc_depth, 1)  # first (highest-scoring) of the deepest
