@@ -129,7 +129,7 @@ def check_observation(cfg: VLAConfig, obs: Observation) -> int:
         shapes[name] = shape
     batch = {name: shape[0] for name, shape in shapes.items()}
     if len(set(batch.values())) > 1:
-        raise ValueError(f"observation fields disagree on the batch size B: "
+        raise ValueError("observation fields disagree on the batch size B: "
                          + ", ".join(f"{n} {list(shapes[n])}" for n in expected))
     if obs.image.dtype != jnp.uint8:
         raise ValueError(f"observation.image has dtype {obs.image.dtype}, expected uint8 (pixels 0..255)")
