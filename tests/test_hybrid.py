@@ -180,7 +180,8 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
 
     env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
     policy = methods.make_policy("heisd", env, budget="fixed", top_k=4, depth=2, total_tokens=8)
-    assert policy.name == "heisd" and policy.params["store"].size > 100_000
+    with np.load(methods.vla_policy.DEFAULT_DATASTORE / "datastore.npz") as shipped:
+        assert policy.name == "heisd" and policy.params["store"].size == len(shipped["keys"]) > 10_000
     with pytest.raises(ValueError, match="pass batch_size"):  # budget=auto (the default) measures costs at it
         methods.make_policy("heisd", env)
     assert methods.check_settings("heisd", {"skip": "false", "k_skip": "2"}) == {"skip": False, "k_skip": 2}
