@@ -13,7 +13,7 @@ budget's estimates) on B of the recorded envs. Timed after a warm-up call (compi
 excluded), median of --reps; speedup = AR time / method time in this run, with its spread
 (min..max of the per-repetition ratios, AR's i-th repetition against the method's i-th).
 The target's prefill alone is timed the same way: AR / prefill is the ceiling of any method
-that prefills every action (issue 9), reported per batch size. Per method it also reports target passes per
+that prefills every action, reported per batch size. Per method it also reports target passes per
 action (TPA), tokens per target pass (AL), the mode shares, and how often the method's
 action equals the recorded AR action (lossless methods: 1.0) with the mean bin distance.
 The replay is open loop: the observations are the recording method's, so a method's own

@@ -1,4 +1,4 @@
-"""Batch-aware draft budgets (issue 9): per control step, choose the draft budget that
+"""Batch-aware draft budgets: per control step, choose the draft budget that
 minimises the expected time per action, from a cost table measured on the device in use
 (`heisd_jax.cost_model`) and running estimates of the acceptance seen so far. Our design;
 HeiSD and Spec-VLA use one fixed budget.
@@ -30,19 +30,16 @@ Forgetting a phase: each option also keeps the plain mean of every batch's round
 run (`BudgetState.mean_rounds`); while an option is not chosen, its running estimate returns
 towards that long-run mean by `forget` per step. A few slow steps (fine manipulation in
 every row, say) make the estimate pessimistic and AR takes over; without forgetting, the
-option then stayed unchosen until its retry came due, about regret / retry_share ms later
+option would stay unchosen until its retry came due, about regret / retry_share ms later
 (~80 steps at batch 1 on an H200, half an episode), although the phase had passed. With
 it, an option whose long run beats AR comes back after about 1 / forget steps; one whose
 long run loses stays where it is (the mean is no better than its estimate).
 A margin: a drafting option is chosen only if predicted `margin` (10%) faster than AR. The
 table's own error is of that size: at batch 16 on an H200, without a margin, the chooser
 picked drafting on about half the steps although drafting measured 7-8% slower than AR in
-the same replays, and two calibrations of AR's decode at batch 1 differed by 12%
-(BENCHMARKS.md, issue 9). The price: at batch 1 AR runs on a quarter of the steps.
-(Until this design, unchosen estimates drifted back to the optimistic prior at 1% per step,
-which re-tried every losing option about every 90-160 steps, for as long as a run lasted:
-by `experiments/budget_sim.py` on the H200 tables, 8% over AR in 420 steps at batch 256 and
-1,024, against 1% with retries.)
+the same replays, and two calibrations of AR's decode at batch 1 differed by 12%. The
+price: at batch 1 AR runs on a quarter of the steps. (`experiments/budget_sim.py` replays
+the chooser on measured cost tables.)
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
 """

@@ -1,4 +1,4 @@
-"""The measured cost model behind `budget="auto"` (issue 9): latencies of the target's and
+"""The measured cost model behind `budget="auto"`: latencies of the target's and
 the drafter's passes, and of each budget option's round and fixed part, measured on the
 device in use at the batch size in use, cached on disk.
 
@@ -20,9 +20,8 @@ on GPUs and a near-tie argmax can differ between the fused prefill and AR's pass
 batch 1,024 on an H200 the anchor ran 3 rounds. Its measured rounds are subtracted.) The
 tree's drafter-only option shares that round cost; its fixed part is the median over
 random input draws of (decode - rounds x round). Without a retrieval option,
-the round measured alone is used. (FORMAT 3. Formats 1-2 subtracted rounds measured alone
-and over-predicted the fixed part: at batch 16 on an H100, 2.4-3.1 ms against a 0.92 ms
-prefill, so AR was chosen where a fixed 4x2x8 budget ran at AR's speed.)
+the round measured alone is used. (Subtracting rounds measured alone instead over-predicts
+the fixed part: at batch 16 on an H100, 2.4-3.1 ms against a 0.92 ms prefill.)
 
 Calibrate on an otherwise idle device: a table measured while other programs share the GPU
 is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and

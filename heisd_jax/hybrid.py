@@ -11,7 +11,7 @@ Per env and control step (`step`):
      the recent actions alone, and no verify-skip); the env's own
      last `recent_candidates` executed actions join them as further candidates (our design:
      the target's actions repeat from step to step far more often than the datastore's
-     expert actions match them; BENCHMARKS.md, issue 9). The datastore's candidates come
+     expert actions match them). The datastore's candidates come
      first, so verify-skip's "top retrieved action" is always the datastore's.
   3. verify-skip (our rule, `rules.may_skip`): a confident retrieval-mode row executes
      its top candidate with no target pass, at most `k_skip` times in a row.
@@ -25,7 +25,7 @@ Per env and control step (`step`):
      `continuation="ar"` (our design), by single-token target passes with no drafter at
      all: on an H200 at batch 1 a 4x2x8 round costs 0.46 ms and gains ~1.7 tokens, about
      what 1.7 AR passes (0.25 ms each) cost, while the drafter's prompt pass and hand-over
-     add to every action (BENCHMARKS.md, issue 9).
+     add to every action.
 Rows that need no target pass (skipped) are masked, and the target call itself is skipped
 (`lax.cond`) when no row in the batch needs it.
 

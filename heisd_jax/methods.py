@@ -75,7 +75,7 @@ HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bi
                    "budget_margin": float}
 # Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
 # token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance,
-# and (issue 9) chooses its draft budget per step from measured costs (budget=auto).
+# and chooses its draft budget per step from measured costs (budget=auto).
 HYBRID_DEFAULTS = {
     "retrieval": {"mode": "retrieval", "retrieval_acceptance": "token_relaxed", "skip": False,
                   "acceptance": "token_relaxed", "relax_bins": 9, "budget": "fixed"},

@@ -192,7 +192,7 @@ def _where_rows(active, new, old):
     for every row. That is exact because nothing here writes a cache below its row's
     length (passes write nothing, `vla.commit` and the drafter write at and after it), so
     `new` and `old` differ only in slots that `old`'s key mask hides. Selecting the whole
-    cache cost a full copy of it per round (batch 1,024: ~3 ms on an H200)."""
+    cache would cost a full copy of it per round (batch 1,024: ~3 ms on an H200)."""
     def pick(n, o):
         return jnp.where(active.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)
 
