@@ -1,6 +1,7 @@
 """What re-trying losing options costs the automatic budget, by the arithmetic of a measured
 cost table (no model runs): every speculative option is assumed to need --rounds draft rounds
-and to cost what the table predicts for them; AR costs its measured decode.
+(for ar+retrieval: single-token passes) and to cost what the table predicts for them; AR
+costs its measured decode.
 
   python -m experiments.budget_sim --tables=experiments/results/costs/cost_table_prev_target_b256_h200.json \
       --steps=40,420 --rounds=6
@@ -29,11 +30,9 @@ flags.DEFINE_float("retry_share", budget.BudgetConfig.retry_share, "BudgetConfig
 
 
 def option(name: str) -> budget.Option:
-    """'ar' | 'KxDxN' | 'KxDxN+retrieval' -> budget.Option."""
-    if name == "ar":
-        return budget.Option(None)
+    """'ar' | 'ar+retrieval' | 'KxDxN' | 'KxDxN+retrieval' -> budget.Option."""
     tree = name.removesuffix("+retrieval")
-    return budget.Option(budget.parse_trees(tree)[0], name != tree)
+    return budget.Option(None if tree == "ar" else budget.parse_trees(tree)[0], name != tree)
 
 
 def drift(costs: budget.Costs, opts, true_rounds: np.ndarray, steps: int) -> float:
@@ -65,7 +64,7 @@ def main(argv):
         if opts[0].tree is not None:
             raise app.UsageError(f"{path}: the first option must be 'ar', got {table.options}")
         costs = table.costs()
-        true_rounds = np.asarray([0.0 if o.tree is None else FLAGS.rounds for o in opts])
+        true_rounds = np.asarray([0.0 if o == budget.Option(None) else FLAGS.rounds for o in opts])
         ar_ms = float(costs.fixed_ms[0])
         print(f"{path}: {table.key.get('device')} batch {table.key.get('batch')}, AR {ar_ms:.2f} ms")
         for n in steps:
