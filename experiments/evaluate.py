@@ -23,8 +23,8 @@ from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import budget, cost_model, evaluate as ev, hybrid, methods, results_io, sharding, spec_decode, vla_policy
-from experiments import cli
+from heisd_jax import cost_model, evaluate as ev, methods, results_io, sharding, vla_policy
+from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
 cli.define_calibrate_costs()
@@ -40,58 +40,10 @@ flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Speculative met
 cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "retrieval/heisd: the retrieval datastore.")
 cli.existing_dir("datastore", "datastore")
-flags.DEFINE_enum("acceptance", None, list(spec_decode.ACCEPTANCE),
-                  "Drafter trees: acceptance rule (default: strict for drafter, token_relaxed for retrieval/heisd).")
-flags.DEFINE_integer("relax_bins", None, "token_relaxed: accept a draft within this many bins of the target's choice.")
-flags.DEFINE_integer("top_k", None, "Draft tree: children kept per level (EAGLE-2 top-k; default 8).")
-flags.DEFINE_integer("depth", None, "Draft tree: depth (default 4).")
-flags.DEFINE_integer("total_tokens", None, "Draft tree: nodes verified per round (<= top_k * depth; default 32).")
-flags.DEFINE_enum("mode", None, list(hybrid.MODES), "heisd: hybrid (kinematic boundary) or one mode at every step.")
-flags.DEFINE_enum("retrieval_acceptance", None, list(hybrid.RETRIEVAL_ACCEPTANCE),
-                  "retrieval/heisd: acceptance rule for retrieval drafts (heisd default seq_relaxed).")
-flags.DEFINE_integer("retrieval_relax_bins", None, "token_relaxed retrieval acceptance: bins (default 9).")
-flags.DEFINE_integer("n_candidates", None, "retrieval/heisd: retrieved actions verified per step (default 4; 0: no "
-                     "datastore query, the recent actions alone, verify-skip off).")
-flags.DEFINE_integer("recent_candidates", None, "retrieval/heisd: the env's own last executed actions verified as "
-                     "further candidates each retrieval step (default: heisd 4, retrieval 0; our design).")
-flags.DEFINE_enum("verify", None, list(hybrid.VERIFY), "Retrieval drafts verified inside the prefill or in a second pass.")
-flags.DEFINE_enum("continuation", None, list(hybrid.CONTINUATION),
-                  "retrieval/heisd with budget=fixed: what decodes the rest of an action after the prefill and its "
-                  "accepted candidate prefix: drafter rounds (default) or single-token AR passes (no drafter).")
-flags.DEFINE_bool("skip", None, "heisd: verify-skip (default on; off with strict acceptance).")
-flags.DEFINE_integer("k_skip", None, "Verify-skip: at most this many consecutive skipped target passes.")
-flags.DEFINE_float("tau_on", None, "Boundary: metric above which the drafter mode starts (default: the calibration).")
-flags.DEFINE_float("tau_off", None, "Boundary: metric below which the retrieval mode starts.")
-flags.DEFINE_enum("budget", None, list(budget.BUDGETS),
-                  "retrieval/heisd: draft budget chosen per step from measured costs (auto; heisd default) or the "
-                  "one fixed tree (fixed).")
-flags.DEFINE_string("budget_trees", None, "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
-                    "separated by '/' (default: the --top_k/--depth/--total_tokens tree if given, else 4x2x8/8x4x32).")
-flags.DEFINE_float("budget_forget", None, "budget=auto: per unchosen step, share by which an option's estimate "
-                   "returns to its long-run mean (default 0.05; 0 = never).")
-flags.DEFINE_float("budget_margin", None, "budget=auto: a drafting option must be predicted this much faster than "
-                   "AR to be chosen (default 0.1).")
-flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "VLA methods: parameters and KV cache in this dtype (default float32).")
+for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
+    flags.declare_key_flag(_name)
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
-
-METHOD_FLAGS = ("acceptance", "relax_bins", "top_k", "depth", "total_tokens", "mode", "retrieval_acceptance",
-                "retrieval_relax_bins", "n_candidates", "recent_candidates", "verify", "continuation", "skip", "k_skip",
-                "tau_on", "tau_off", "budget", "budget_trees", "budget_forget", "budget_margin", "dtype")
-
-
-def method_settings() -> dict:
-    """The method's own settings from the flags that were given (validated: a clear error
-    before anything loads or compiles)."""
-    given = {k: getattr(FLAGS, k) for k in METHOD_FLAGS if getattr(FLAGS, k) is not None}
-    if FLAGS.method == "expert" or (FLAGS.method == "ar" and set(given) - {"dtype"}):
-        if given:
-            raise app.UsageError(f"--method={FLAGS.method} takes none of --{', --'.join(given)}")
-        return {}
-    try:
-        return methods.check_settings(FLAGS.method, given)
-    except ValueError as e:
-        raise app.UsageError(str(e)) from e
 
 
 def main(argv):
@@ -106,12 +58,11 @@ def main(argv):
     settings = {"method": FLAGS.method, "tasks": [t.name for t in task_list], "episodes_per_task": cfg.episodes_per_task}
     if FLAGS.method != "expert":
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
-    kwargs = method_settings()
+    kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}
-    for key in methods.CHECKPOINTS.get(FLAGS.method, ()):
-        if key != "checkpoint_path":
-            name = key.removesuffix("_path")
+    for name in methods.get(FLAGS.method).loads:
+        if name != "checkpoint":
             settings[name] = os.path.abspath(paths[name])
     try:
         done = results_io.load_resumable(FLAGS.out, settings)

@@ -1,16 +1,21 @@
-"""Decoding methods registered by name, so the evaluator and sweeps can say --method=NAME.
+"""The decoding methods, one record each (`Method`), registered by name so the evaluator,
+sweeps and benchmarks can say `--method=NAME`.
 
-Each entry builds an `envs.rollout.Policy` for an environment: the scripted expert (an
-upper bound, no model) or a VLA decoding method over a policy checkpoint. The speculative
-methods (drafter, retrieval, heisd) register here as they land.
+A method's record says what it is (`name`), its settings (a dataclass: field names are the
+entry points' flags and the sweep keys, field defaults are the method's defaults, written
+once here), what it loads (target checkpoint, drafter, datastore), whether it looks at the
+camera image, and whether it chooses a draft budget from measured costs. `make_policy`
+builds its `envs.rollout.Policy` for an env: the scripted expert (an upper bound, no model)
+or a VLA decoding method over the shipped (or given) checkpoints.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import typing
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Optional
 
 import jax
 import jax.numpy as jnp
@@ -23,6 +28,7 @@ from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinem
                        vla_policy)
 
 DTYPES = ("float32", "bfloat16")
+BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
 
 
 def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
@@ -43,46 +49,105 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params):
     return (vla.VLAConfig(**{**cfg.__dict__, "dtype": dtype}), *(jax.tree.map(cast, p) for p in params))
 
 
-def _vla_method(name: str, decode: vla_policy.DecodeFn) -> Callable[..., Policy]:
-    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
-             dtype: str = "float32") -> Policy:
-        params, cfg, tok = _load_target(env, checkpoint_path)
-        cfg, params = in_dtype(cfg, dtype, params)
-        return vla_policy.decoding_policy(name, params, cfg, tok, decode)
-    return make
+def _setting(default, help: str, choices: tuple[str, ...] | None = None):
+    """A settings field: its default, its help line (the flag's), its valid values if a choice."""
+    return dataclasses.field(default=default, metadata={"help": help, "choices": choices})
 
 
-def _drafter_method(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
-                    drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER, dtype: str = "float32",
-                    **spec_settings) -> Policy:
-    """Spec-VLA: EAGLE-2 tree drafts from the drafter, verified by the target."""
-    spec = spec_decode.SpecConfig(**spec_settings)
-    params, cfg, tok = _load_target(env, checkpoint_path)
-    spec.check_fits(cfg)
-    dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
-    cfg, params, dparams = in_dtype(cfg, dtype, params, dparams)
-    return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
-                                      vla_policy.drafter_sd(spec), spec=spec)
+_SPEC, _HYB, _SEQ, _SKIP = spec_decode.SpecConfig, hybrid.HybridConfig, acceptance.SeqRelaxedConfig, acceptance.SkipConfig
+# Module names that fields below shadow (`acceptance`, `budget`) in their class bodies:
+TOKEN_RULES, ACTION_RULES, BUDGETS, _BUDGET = acceptance.TOKEN_RULES, acceptance.ACTION_RULES, budget.BUDGETS, budget.BudgetConfig
+_DEFAULT_TREES = "/".join("x".join(map(str, t)) for t in budget.DEFAULT_TREES)
 
 
-COMMON_SETTINGS = {"dtype": str}  # every VLA method
-SPEC_SETTINGS = {"top_k": int, "depth": int, "total_tokens": int, "acceptance": str, "relax_bins": int}
-HYBRID_SETTINGS = {"mode": str, "retrieval_acceptance": str, "retrieval_relax_bins": int, "n_candidates": int,
-                   "recent_candidates": int,
-                   "max_dist": float, "verify": str, "continuation": str, "skip": bool, "k_skip": int, "skip_eps": float, "r_agree": int,
-                   "r_max": int, "r_seq": int, "tau_on": float, "tau_off": float, "min_dwell": int,
-                   "budget": str, "budget_trees": str, "budget_forget": float,
-                   "budget_margin": float}
-# Method defaults (HEISD.md): `retrieval` verifies retrieval drafts every step with Spec-VLA's
-# token-wise rule; `heisd` adds the kinematic boundary, verify-skip and sequence-wise acceptance,
-# and chooses its draft budget per step from measured costs (budget=auto).
-HYBRID_DEFAULTS = {
-    "retrieval": {"mode": "retrieval", "retrieval_acceptance": "token_relaxed", "skip": False,
-                  "acceptance": "token_relaxed", "relax_bins": 9, "budget": "fixed"},
-    "heisd": {"mode": "hybrid", "retrieval_acceptance": "seq_relaxed", "skip": True,
-              "acceptance": "token_relaxed", "relax_bins": 9, "budget": "auto", "recent_candidates": 4},
-}
-BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
+@dataclasses.dataclass(frozen=True)
+class ARSettings:
+    """Greedy autoregressive decoding: the target's prefill, then one pass per token."""
+    dtype: str = _setting("float32", "Parameters and KV cache in this dtype.", DTYPES)
+
+
+@dataclasses.dataclass(frozen=True)
+class DrafterSettings(ARSettings):
+    """Spec-VLA: EAGLE-2 draft trees from the drafter, verified by the target."""
+    top_k: int = _setting(_SPEC.top_k, "Draft tree: children kept per level (EAGLE-2 top-k).")
+    depth: int = _setting(_SPEC.depth, "Draft tree: depth.")
+    total_tokens: int = _setting(_SPEC.total_tokens, "Draft tree: nodes verified per round (<= top_k * depth).")
+    acceptance: str = _setting(_SPEC.acceptance, "Drafter trees: acceptance rule.", TOKEN_RULES)
+    relax_bins: int = _setting(_SPEC.relax_bins, "token_relaxed: accept a draft within this many bins of the "
+                               "target's choice (strict acceptance: 0 unless given).")
+
+
+@dataclasses.dataclass(frozen=True)
+class RetrievalSettings(DrafterSettings):
+    """Retrieval drafts (whole actions from the datastore) verified every step, drafter SD for
+    the rest of each action."""
+    acceptance: str = _setting("token_relaxed", "Drafter trees: acceptance rule (strict: every rule lossless, "
+                               "verify-skip off, unless given).", TOKEN_RULES)
+    relax_bins: int = _setting(9, "token_relaxed: accept a draft within this many bins of the target's choice "
+                               "(strict acceptance: 0 unless given).")
+    mode: str = _setting("retrieval", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES)
+    retrieval_acceptance: str = _setting("token_relaxed", "Acceptance rule for retrieval drafts (strict "
+                                         "acceptance: strict unless given).", ACTION_RULES)
+    retrieval_relax_bins: int = _setting(_HYB.relax_bins, "token_relaxed retrieval acceptance: bins.")
+    n_candidates: int = _setting(_HYB.n_candidates, "Retrieved actions verified per step (0: no datastore "
+                                 "query, the recent actions alone, verify-skip off unless given).")
+    recent_candidates: int = _setting(_HYB.recent_candidates, "The env's own last executed actions verified as "
+                                      "further candidates each retrieval step (our design).")
+    max_dist: float = _setting(_HYB.max_dist, "Candidates with a squared key distance above this are invalid.")
+    verify: str = _setting(_HYB.verify, "Retrieval drafts verified inside the prefill or in a second pass.",
+                           hybrid.VERIFY)
+    continuation: str = _setting(_HYB.continuation, "budget=fixed: what decodes the rest of an action after the "
+                                 "prefill and its accepted candidate prefix: drafter rounds or single-token AR "
+                                 "passes (no drafter).", hybrid.CONTINUATION)
+    skip: bool = _setting(False, "Verify-skip: a confident retrieval-mode row executes its top candidate without "
+                          "a target pass.")
+    k_skip: int = _setting(_SKIP.k_skip, "Verify-skip: at most this many consecutive skipped target passes.")
+    skip_eps: Optional[float] = _setting(None, "Verify-skip: nearest-key squared distance under which retrieval "
+                                         f"is trusted (default: the datastore's calibration, else {_SKIP.eps}).")
+    r_agree: int = _setting(_SKIP.r_agree, "Verify-skip: the top candidates agree within this many bins.")
+    r_max: int = _setting(_SEQ.r_max, "seq_relaxed: no token further than this many bins from the target's.")
+    r_seq: int = _setting(_SEQ.r_seq, "seq_relaxed: bound on the cumulative bin distance of the accepted prefix.")
+    tau_on: Optional[float] = _setting(None, "Boundary: metric above which the drafter mode starts (default: the "
+                                       "datastore's calibration).")
+    tau_off: Optional[float] = _setting(None, "Boundary: metric below which the retrieval mode starts (default: "
+                                        "the datastore's calibration).")
+    min_dwell: Optional[int] = _setting(None, "Boundary: control steps a mode holds at least (default: the "
+                                        "datastore's calibration).")
+    budget: str = _setting("fixed", "Draft budget chosen per step from measured costs (auto) or the one fixed "
+                           "tree (fixed).", BUDGETS)
+    budget_trees: str = _setting("", "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
+                                 "separated by '/' (default: the top_k/depth/total_tokens tree if given, else "
+                                 f"{_DEFAULT_TREES}).")
+    budget_forget: float = _setting(_BUDGET.forget, "budget=auto: per unchosen step, share by which an "
+                                    "option's estimate returns to its long-run mean (0: never).")
+    budget_margin: float = _setting(_BUDGET.margin, "budget=auto: a drafting option must be predicted "
+                                    "this much faster than AR to be chosen.")
+
+
+@dataclasses.dataclass(frozen=True)
+class HeiSDSettings(RetrievalSettings):
+    """HeiSD: the kinematic boundary picks retrieval or drafter drafts per step; verify-skip,
+    sequence-wise relaxed acceptance, and a draft budget chosen from measured costs."""
+    mode: str = _setting("hybrid", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES)
+    retrieval_acceptance: str = _setting("seq_relaxed", "Acceptance rule for retrieval drafts (strict acceptance: "
+                                         "strict unless given).", ACTION_RULES)
+    recent_candidates: int = _setting(4, "The env's own last executed actions verified as further candidates "
+                                      "each retrieval step (our design).")
+    skip: bool = _setting(True, "Verify-skip: a confident retrieval-mode row executes its top candidate without a "
+                          "target pass (off with strict acceptance or n_candidates=0, unless given).")
+    budget: str = _setting("auto", "Draft budget chosen per step from measured costs (auto) or the one fixed tree "
+                           "(fixed).", BUDGETS)
+
+
+def setting_types(settings_cls: type) -> dict[str, type]:
+    """Field name -> its Python type (int, float, bool, str; Optional[X] -> X)."""
+    hints = typing.get_type_hints(settings_cls)
+    out = {}
+    for f in dataclasses.fields(settings_cls):
+        kind = hints[f.name]
+        args = [a for a in typing.get_args(kind) if a is not type(None)]
+        out[f.name] = args[0] if args else kind
+    return out
 
 
 def _cast(key: str, value, kind):
@@ -90,6 +155,8 @@ def _cast(key: str, value, kind):
         if value.lower() not in ("true", "false", "1", "0"):
             raise ValueError(f"setting {key}={value!r} is not a boolean (true/false)")
         return value.lower() in ("true", "1")
+    if kind is int and isinstance(value, float) and value.is_integer():
+        value = int(value)
     try:
         return kind(value)
     except (TypeError, ValueError) as e:
@@ -97,61 +164,61 @@ def _cast(key: str, value, kind):
 
 
 def check_settings(name: str, settings: dict) -> dict:
-    """A method's settings, typed and validated (a clear error naming the valid keys and
-    values), before anything loads or compiles."""
-    if name not in METHODS:
-        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    if name == "expert":
-        return dict(settings)
-    valid = {"drafter": SPEC_SETTINGS, "retrieval": {**SPEC_SETTINGS, **HYBRID_SETTINGS},
-             "heisd": {**SPEC_SETTINGS, **HYBRID_SETTINGS}}.get(name, {})
-    valid = {**COMMON_SETTINGS, **valid}
-    unknown = sorted(set(settings) - set(valid))
+    """A method's given settings, typed and validated against its settings record (a clear
+    error naming the valid keys and values), before anything loads or compiles."""
+    method = get(name)
+    types = setting_types(method.settings) if method.settings else {}
+    unknown = sorted(set(settings) - set(types))
     if unknown:
-        raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(valid)}")
-    out = {k: _cast(k, v, valid[k]) for k, v in settings.items()}
-    if out.get("dtype", "float32") not in DTYPES:
-        raise ValueError(f"unknown dtype {out['dtype']!r}; valid: {', '.join(DTYPES)}")
-    if name == "drafter":
-        spec_decode.SpecConfig(**{k: v for k, v in out.items() if k in SPEC_SETTINGS})
-    elif name in HYBRID_DEFAULTS:
+        raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(types) or 'none'}")
+    out = {k: _cast(k, v, types[k]) for k, v in settings.items()}
+    for f in dataclasses.fields(method.settings) if method.settings else ():
+        choices = f.metadata.get("choices")
+        if f.name in out and choices and out[f.name] not in choices:
+            raise ValueError(f"unknown {f.name} {out[f.name]!r}; valid: {', '.join(choices)}")
+    if name == "expert":
+        expert.ExpertConfig(**out)
+    elif name == "drafter":
+        drafter_spec(out)
+    elif get(name).budget:
         hybrid_config(name, out)
     return out
 
 
-def hybrid_config(name: str, settings: dict, calibration: dict | None = None) -> hybrid.HybridConfig:
-    """The HybridConfig of method `name` (retrieval, heisd) from flat settings over the
+def drafter_spec(given: dict) -> spec_decode.SpecConfig:
+    """The drafter method's tree settings over its defaults."""
+    s = {**dataclasses.asdict(DrafterSettings()), **given}
+    return spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
+
+
+def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hybrid.HybridConfig:
+    """The HybridConfig of method `name` (retrieval, heisd) from its given settings over the
     method's defaults and the datastore's calibration (metric scales, thresholds)."""
-    s = {**HYBRID_DEFAULTS[name], **settings}
+    s = {**dataclasses.asdict(get(name).settings()), **given}
     if s["acceptance"] == "strict":  # lossless unless asked otherwise
         for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
-            if key not in settings:
+            if key not in given:
                 s[key] = value
-    if s.get("n_candidates") == 0 and "skip" not in settings:  # verify-skip needs the datastore's candidates
+    if s["n_candidates"] == 0 and "skip" not in given:  # verify-skip needs the datastore's candidates
         s["skip"] = False
     cal = calibration or {}
-    spec = spec_decode.SpecConfig(**{k: s[k] for k in SPEC_SETTINGS if k in s})
-    seq = acceptance.SeqRelaxedConfig(**{k: s[k] for k in ("r_max", "r_seq") if k in s})
-    skip_defaults = acceptance.SkipConfig()
-    skip = acceptance.SkipConfig(enabled=s["skip"], k_skip=s.get("k_skip", skip_defaults.k_skip),
-                                 eps=s.get("skip_eps", cal.get("skip_eps", skip_defaults.eps)),
-                                 r_agree=s.get("r_agree", skip_defaults.r_agree))
+    spec = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
+    skip = acceptance.SkipConfig(enabled=s["skip"], k_skip=s["k_skip"], r_agree=s["r_agree"],
+                                 eps=s["skip_eps"] if s["skip_eps"] is not None else cal.get("skip_eps", _SKIP.eps))
     metric = kinematics.MetricConfig(scales=tuple(cal.get("metric_scales", kinematics.MetricConfig().scales)))
-    bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if k in s}}
+    bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if s[k] is not None}}
     return hybrid.HybridConfig(
-        spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"],
-        relax_bins=s.get("retrieval_relax_bins", 9), seq=seq,
-        n_candidates=s.get("n_candidates", 4), recent_candidates=s.get("recent_candidates", 0),
-        max_dist=s.get("max_dist", float("inf")),
-        verify=s.get("verify", "prefill"), continuation=s.get("continuation", "drafter"), skip=skip, metric=metric,
-        boundary=kinematics.BoundaryConfig(**bd),
-        budget=budget_config(s, settings))
+        spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"], relax_bins=s["retrieval_relax_bins"],
+        seq=acceptance.SeqRelaxedConfig(r_max=s["r_max"], r_seq=s["r_seq"]),
+        n_candidates=s["n_candidates"], recent_candidates=s["recent_candidates"], max_dist=s["max_dist"],
+        verify=s["verify"], continuation=s["continuation"], skip=skip, metric=metric,
+        boundary=kinematics.BoundaryConfig(**bd), budget=budget_config(s, given))
 
 
 def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
     """budget=auto chooses per step among AR and the trees of `budget_trees` (default: the
     tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
-    mode = s.get("budget", "fixed")
+    mode = s["budget"]
     if mode == "auto" and "continuation" in given:
         raise ValueError("continuation is only used with budget=fixed (budget=auto chooses per step between AR after "
                          "the verified candidates, option ar+retrieval, and the drafter trees)")
@@ -160,15 +227,14 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
             if key in given:
                 raise ValueError(f"{key} is only used with budget=auto")
         return budget.BudgetConfig(mode=mode)
-    if "budget_trees" in s:
+    if s["budget_trees"]:
         trees = budget.parse_trees(s["budget_trees"])
     elif any(k in given for k in ("top_k", "depth", "total_tokens")):
-        sp = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens") if k in s})
+        sp = spec_decode.SpecConfig(top_k=s["top_k"], depth=s["depth"], total_tokens=s["total_tokens"])
         trees = ((sp.top_k, sp.depth, sp.total_tokens),)
     else:
         trees = budget.DEFAULT_TREES
-    return budget.BudgetConfig(mode="auto", trees=trees, forget=s.get("budget_forget", budget.BudgetConfig.forget),
-                               margin=s.get("budget_margin", budget.BudgetConfig.margin))
+    return budget.BudgetConfig(mode="auto", trees=trees, forget=s["budget_forget"], margin=s["budget_margin"])
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
@@ -186,27 +252,40 @@ def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
     return cal
 
 
-def _hybrid_method(name: str):
-    def make(env: TabletopEnv, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT,
-             drafter_path: str | Path = vla_policy.DEFAULT_DRAFTER,
-             datastore_path: str | Path = vla_policy.DEFAULT_DATASTORE, batch_size: int | None = None,
-             cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, calibrate_costs: bool = False,
-             log: Callable[[str], None] = print, **settings) -> Policy:
-        """batch_size: rows per device of the decode step. budget=auto loads the decode-cost
-        table for that size from `cost_cache`; where none is cached it fails, unless
-        `calibrate_costs` asks to measure it now (then cached; cost_cache None: never cached)."""
-        settings = check_settings(name, settings)
-        dtype = settings.pop("dtype", "float32")
-        params, cfg, tok = _load_target(env, checkpoint_path)
-        dparams, _ = checkpoint.load_drafter(drafter_path, cfg, params)
-        store, key_spec, meta = retrieval.load(datastore_path, tok, checkpoint.fingerprint(params))
+def _build_expert(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
+    return expert.policy(env, expert.ExpertConfig(**given))
+
+
+def _build_ar(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
+    params, cfg, tok = _load_target(env, paths["checkpoint"])
+    cfg, params = in_dtype(cfg, ARSettings(**given).dtype, params)
+    return vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
+
+
+def _build_drafter(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
+    spec = drafter_spec(given)
+    params, cfg, tok = _load_target(env, paths["checkpoint"])
+    spec.check_fits(cfg)
+    dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
+    cfg, params, dparams = in_dtype(cfg, DrafterSettings(**given).dtype, params, dparams)
+    return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
+                                      vla_policy.drafter_sd(spec), spec=spec)
+
+
+def _build_hybrid(name: str):
+    def build(env: TabletopEnv, paths: dict, given: dict, *, batch_size: int | None = None,
+              cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, calibrate_costs: bool = False,
+              log: Callable[[str], None] = print) -> Policy:
+        params, cfg, tok = _load_target(env, paths["checkpoint"])
+        dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
+        store, key_spec, meta = retrieval.load(paths["datastore"], tok, checkpoint.fingerprint(params))
         missing = sorted(set(env.global_index.tolist()) - set(np.unique(np.asarray(store.task)).tolist()))
         if missing:
-            raise ValueError(f"datastore {datastore_path} has no entries for tasks "
+            raise ValueError(f"datastore {paths['datastore']} has no entries for tasks "
                              f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
-        hcfg = hybrid_config(name, settings, load_calibration(datastore_path, meta))
+        hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
         hcfg.check_fits(cfg)
-        cfg, params, dparams = in_dtype(cfg, dtype, params, dparams)
+        cfg, params, dparams = in_dtype(cfg, get(name).settings(**given).dtype, params, dparams)
         all_params = {"target": params, "drafter": dparams, "store": store}
         table = None
         if hcfg.budget.mode == "auto":
@@ -218,26 +297,45 @@ def _hybrid_method(name: str):
             all_params["costs"] = table.costs()
         policy = vla_policy.hybrid_policy(name, all_params, cfg, tok, hcfg, key_spec, env.global_index)
         return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table))
-    make.__doc__ = f"`{name}`: retrieval drafts (datastore) and drafter SD (see heisd_jax.hybrid)."
-    return make
+    return build
 
 
-METHODS: dict[str, Callable[..., Policy]] = {
-    "expert": lambda env, **kw: expert.policy(env, expert.ExpertConfig(**kw)),
-    "ar": _vla_method("ar", vla_policy.ar),
-    "drafter": _drafter_method,
-    "retrieval": _hybrid_method("retrieval"),
-    "heisd": _hybrid_method("heisd"),
-}
-USES_CAMERA = {"expert": False}  # methods that never look at the image (render off: faster)
+@dataclasses.dataclass(frozen=True)
+class Method:
+    """One decoding method: everything the evaluator needs to know about it."""
+    name: str
+    settings: type  # its settings dataclass: flags, sweep keys and defaults
+    loads: tuple[str, ...]  # what it reads: "checkpoint" (target VLA), "drafter", "datastore"
+    renders: bool  # looks at the camera image (the expert does not: render off, faster)
+    budget: bool  # may choose its draft budget from measured costs (takes batch_size, cost tables)
+    build: Callable[..., Policy]  # (env, paths, given settings, **budget options) -> Policy
+
+
+DEFAULT_PATHS = {"checkpoint": vla_policy.DEFAULT_CHECKPOINT, "drafter": vla_policy.DEFAULT_DRAFTER,
+                 "datastore": vla_policy.DEFAULT_DATASTORE}
+METHODS: dict[str, Method] = {m.name: m for m in (
+    Method("expert", expert.ExpertConfig, (), renders=False, budget=False, build=_build_expert),
+    Method("ar", ARSettings, ("checkpoint",), renders=True, budget=False, build=_build_ar),
+    Method("drafter", DrafterSettings, ("checkpoint", "drafter"), renders=True, budget=False, build=_build_drafter),
+    Method("retrieval", RetrievalSettings, ("checkpoint", "drafter", "datastore"), renders=True, budget=True,
+           build=_build_hybrid("retrieval")),
+    Method("heisd", HeiSDSettings, ("checkpoint", "drafter", "datastore"), renders=True, budget=True,
+           build=_build_hybrid("heisd")),
+)}
+DECODING_METHODS = tuple(name for name, m in METHODS.items() if "checkpoint" in m.loads)  # the VLA methods
+
+
+def get(name: str) -> Method:
+    """The record of method `name` (a clear error naming the valid ones)."""
+    if name not in METHODS:
+        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
+    return METHODS[name]
 
 
 def env_config(name: str, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECKPOINT) -> EnvConfig:
     """The env settings method `name` runs under: the camera views and size its checkpoint
     was trained on (read from the checkpoint's metadata), no rendering for the expert."""
-    if name not in METHODS:
-        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    if not USES_CAMERA.get(name, True):
+    if not get(name).renders:
         return EnvConfig(render=False)
     cfg = checkpoint.read_config(checkpoint_path)
     if cfg.n_views > len(camera.VIEWS):
@@ -245,26 +343,21 @@ def env_config(name: str, checkpoint_path: str | Path = vla_policy.DEFAULT_CHECK
     return EnvConfig(camera=camera.CameraConfig(height=cfg.image_size, width=cfg.image_size, wrist=cfg.n_views > 1))
 
 
-CHECKPOINTS = {"ar": ("checkpoint_path",), "drafter": ("checkpoint_path", "drafter_path"),
-               "retrieval": ("checkpoint_path", "drafter_path", "datastore_path"),
-               "heisd": ("checkpoint_path", "drafter_path", "datastore_path")}  # what each method loads
-
-
 def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = None,
                 drafter: str | Path | None = None, datastore: str | Path | None = None,
                 batch_size: int | None = None, cost_cache: str | Path | None = cost_model.DEFAULT_CACHE,
-                calibrate_costs: bool = False, **settings) -> Policy:
+                calibrate_costs: bool = False, log: Callable[[str], None] = print, **settings) -> Policy:
     """The policy of method `name`; `checkpoint`/`drafter`/`datastore` (default: the shipped
-    ones) reach only the methods that load them, `settings` are the method's own options;
-    batch_size (rows per device), cost_cache and calibrate_costs (measure a missing
-    decode-cost table now instead of failing) reach the methods with a draft budget."""
-    if name not in METHODS:
-        raise ValueError(f"unknown method {name!r}; valid methods: {', '.join(sorted(METHODS))}")
-    given = {"checkpoint_path": checkpoint, "drafter_path": drafter, "datastore_path": datastore}
-    paths = {k: given[k] for k in CHECKPOINTS.get(name, ()) if given[k] is not None}
-    if name in HYBRID_DEFAULTS:
-        paths.update(batch_size=batch_size, cost_cache=cost_cache, calibrate_costs=calibrate_costs)
-    return METHODS[name](env, **paths, **settings)
+    ones) reach only the methods that load them, `settings` are the method's own (its
+    settings record's fields). batch_size (rows per device), cost_cache and calibrate_costs
+    (measure a missing decode-cost table now instead of failing) reach the methods with a
+    draft budget."""
+    method = get(name)
+    given = check_settings(name, settings)
+    paths = {"checkpoint": checkpoint, "drafter": drafter, "datastore": datastore}
+    paths = {k: Path(paths[k] if paths[k] is not None else DEFAULT_PATHS[k]) for k in method.loads}
+    return method.build(env, paths, given, batch_size=batch_size, cost_cache=cost_cache,
+                        calibrate_costs=calibrate_costs, log=log)
 
 
 def _value(v: str):
