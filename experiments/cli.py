@@ -7,7 +7,9 @@ status 2: no traceback, no usage text (`--helpshort` still prints the flags).
 
 Every entry point also gets `--compilation_cache=DIR`: JAX's persistent compilation cache,
 on by default in the user's cache directory, so a rerun loads its compiled MJX rollouts
-from disk instead of compiling them again ('' turns it off).
+from disk instead of compiling them again ('' turns it off); and the flags that join several
+processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`,
+`--num_processes`, `--process_id`; docs/evaluator.md, "Several hosts").
 """
 
 from __future__ import annotations
@@ -86,16 +88,40 @@ def _parse_flags(argv: list[str]) -> list[str]:
         fail(f"{e} (--helpshort lists the flags)")
 
 
+def setup_distributed(coordinator_address: str | None = None, num_processes: int | None = None,
+                      process_id: int | None = None) -> None:
+    """`jax.distributed.initialize`: joins this process to the others of one multi-host run, so
+    `jax.devices()` lists every process's devices. Arguments left None are read from the
+    cluster (SLURM, Open MPI, ...) or, for the address, $JAX_COORDINATOR_ADDRESS. Must run
+    before anything touches a device."""
+    import jax  # noqa: PLC0415
+
+    jax.distributed.initialize(coordinator_address=coordinator_address or None, num_processes=num_processes,
+                               process_id=process_id)
+
+
 flags.DEFINE_string("compilation_cache", default_compilation_cache(),
                     "JAX's persistent compilation cache directory (compiled programs reused across runs); '' = off.")
+flags.DEFINE_bool("distributed", False, "Several processes (hosts) run one program: jax.distributed.initialize() "
+                  "before anything starts, the cluster read from SLURM/Open MPI or from the three flags below.")
+flags.DEFINE_string("coordinator_address", None, "--distributed: HOST:PORT of process 0 (default: from the cluster, "
+                    "or $JAX_COORDINATOR_ADDRESS).")
+flags.DEFINE_integer("num_processes", None, "--distributed: number of processes (default: from the cluster).",
+                     lower_bound=1)
+flags.DEFINE_integer("process_id", None, "--distributed: this process's index, 0..num_processes-1 (default: "
+                     "from the cluster).", lower_bound=0)
 
 
 def run(main: Callable[[list[str]], object]) -> None:
-    """`absl.app.run(main)`, with bad flags and `app.UsageError` reported in one line, and the
-    compilation cache of --compilation_cache set up before `main` starts."""
+    """`absl.app.run(main)`, with bad flags and `app.UsageError` reported in one line; before
+    `main` starts, this process joins a multi-host run (--distributed and co.) and the
+    compilation cache of --compilation_cache is set up."""
 
     def checked_main(argv: list[str]):
-        setup_compilation_cache(flags.FLAGS.compilation_cache)
+        f = flags.FLAGS
+        if f.distributed or f.coordinator_address or f.num_processes is not None or f.process_id is not None:
+            setup_distributed(f.coordinator_address, f.num_processes, f.process_id)
+        setup_compilation_cache(f.compilation_cache)
         try:
             return main(argv)
         except app.UsageError as e:
