@@ -15,18 +15,20 @@ from absl import app, flags
 
 from heisd_jax import methods
 
-_DEFINED: list[str] = []
+_DEFINED: dict[int, list[str]] = {}  # per FlagValues object: the flags define() made
 
 
 def _fmt(value) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
-def define(method_names: tuple[str, ...] = methods.DECODING_METHODS) -> list[str]:
-    """Defines one flag per settings field of the given methods (once per process) and
+def define(method_names: tuple[str, ...] = methods.DECODING_METHODS,
+           flag_values: flags.FlagValues = flags.FLAGS) -> list[str]:
+    """Defines one flag per settings field of the given methods (once per FlagValues) and
     returns their names (an entry point declares them its key flags, for --helpshort)."""
-    if _DEFINED:
-        return list(_DEFINED)
+    if id(flag_values) in _DEFINED:
+        return list(_DEFINED[id(flag_values)])
+    names = _DEFINED[id(flag_values)] = []
     fields: dict[str, dict] = {}
     for name in method_names:
         cls = methods.get(name).settings
@@ -46,25 +48,26 @@ def define(method_names: tuple[str, ...] = methods.DECODING_METHODS) -> list[str
         text = f"{'/'.join(defaults)}: {e['help']}{default}"
         kind = e["type"]
         if e["choices"]:
-            flags.DEFINE_enum(name, None, list(e["choices"]), text)
+            flags.DEFINE_enum(name, None, list(e["choices"]), text, flag_values=flag_values)
         elif kind is bool:
-            flags.DEFINE_bool(name, None, text)
+            flags.DEFINE_bool(name, None, text, flag_values=flag_values)
         elif kind is int:
-            flags.DEFINE_integer(name, None, text)
+            flags.DEFINE_integer(name, None, text, flag_values=flag_values)
         elif kind is float:
-            flags.DEFINE_float(name, None, text)
+            flags.DEFINE_float(name, None, text, flag_values=flag_values)
         else:
-            flags.DEFINE_string(name, None, text)
-        _DEFINED.append(name)
-    return list(_DEFINED)
+            flags.DEFINE_string(name, None, text, flag_values=flag_values)
+        names.append(name)
+    return list(names)
 
 
-def given(method: str) -> dict:
+def given(method: str, flag_values: flags.FlagValues = flags.FLAGS) -> dict:
     """The settings of `method` given on the command line, typed and checked (an
     `app.UsageError` naming the problem, before anything loads or compiles)."""
-    values = {name: flags.FLAGS[name].value for name in _DEFINED if flags.FLAGS[name].value is not None}
+    names = _DEFINED.get(id(flag_values), [])
+    values = {name: flag_values[name].value for name in names if flag_values[name].value is not None}
     try:
-        valid = {f.name for f in dataclasses.fields(methods.get(method).settings)} & set(_DEFINED)
+        valid = {f.name for f in dataclasses.fields(methods.get(method).settings)} & set(names)
         extra = [name for name in values if name not in valid]
         if extra:
             raise ValueError(f"--method={method} takes none of --{', --'.join(extra)}")

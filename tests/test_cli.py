@@ -37,3 +37,28 @@ def test_bad_flag_writes_nothing(tmp_path):
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2
     assert out.read_text() == "{}"
+
+
+def test_method_flags_are_the_settings_fields():
+    import dataclasses
+
+    from absl import app, flags
+
+    from experiments import method_flags
+    from heisd_jax import methods
+
+    fv = flags.FlagValues()
+    names = method_flags.define(flag_values=fv)
+    fields = {f.name for name in methods.DECODING_METHODS for f in dataclasses.fields(methods.get(name).settings)}
+    assert set(names) == fields and len(names) == len(fields)
+    assert fv["budget"].parser.enum_values == list(methods.HeiSDSettings.__dataclass_fields__["budget"].metadata["choices"])
+    assert "heisd auto" in fv["budget"].help and "retrieval fixed" in fv["budget"].help  # each method's default
+    fv(["prog", "--k_skip=2", "--skip=false", "--budget_trees=4x2x8"])
+    assert method_flags.given("heisd", fv) == {"k_skip": 2, "skip": False, "budget_trees": "4x2x8"}
+    with pytest.raises(app.UsageError, match="--method=drafter takes none of --skip, --k_skip, --budget_trees"):
+        method_flags.given("drafter", fv)
+    fv.unparse_flags()
+    fv(["prog", "--budget=fixed", "--budget_margin=0.2"])
+    with pytest.raises(app.UsageError, match="budget_margin is only used with budget=auto"):
+        method_flags.given("heisd", fv)
+    assert method_flags.given("ar", flags.FlagValues()) == {}
