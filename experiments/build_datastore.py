@@ -3,9 +3,10 @@
   python -m experiments.build_datastore --demos=data/demos --out=checkpoints/datastore
 
 Keys: the last --history actions and the proprio vector; values: the next action's tokens
-under the target's tokenizer (heisd_jax/retrieval.py). Every 1/--holdout-th episode is
-left out (listed in meta.json) for experiments.calibrate_boundary; the kinematic metric's
-per-feature scales (90th percentile over the datastore's demo steps) are saved with it. The datastore records the target's
+under the target's tokenizer (built by heisd_jax/offline/datastore.py, loaded by
+heisd_jax/retrieval.py). Every 1/--holdout-th episode is left out (listed in meta.json) for
+experiments.calibrate_boundary; the kinematic metric's per-feature scales (90th percentile
+over the datastore's demo steps) are saved with it. The datastore records the target's
 fingerprint and is refused for any other target. An existing --out is replaced only once
 the new one is complete, and only with --overwrite.
 """
@@ -20,6 +21,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos
 from heisd_jax import checkpoint, kinematics, retrieval, vla_policy
+from heisd_jax.offline import datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -32,7 +34,7 @@ flags.DEFINE_integer("history", 2, "Previous actions in each key.")
 flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")
 flags.DEFINE_float("holdout", 0.1, "Share of demo episodes left out of the datastore (every 1/holdout-th), "
                    "for experiments.calibrate_boundary.")
-flags.DEFINE_enum("values", "demo", list(retrieval.VALUES),
+flags.DEFINE_enum("values", "demo", list(datastore.VALUES),
                   "Values: the demo's next action, or the target's own greedy action on that step's observation.")
 flags.DEFINE_integer("stride", 1, "Keep every stride-th step (smaller datastore; the shipped one uses 2).")
 flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
@@ -49,15 +51,15 @@ def main(argv):
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
     try:
         n = len(demos.DemoDataset(FLAGS.demos))
-        keep, held = retrieval.split_episodes(n, FLAGS.holdout)
-        store = retrieval.build_from_demos(FLAGS.demos, spec, tok, keep)
+        keep, held = datastore.split_episodes(n, FLAGS.holdout)
+        store = datastore.build_from_demos(FLAGS.demos, spec, tok, keep)
         if FLAGS.values == "target":
-            store = retrieval.with_values(store, retrieval.target_values(params, cfg, FLAGS.demos, keep))
-        store = retrieval.subsample(store, FLAGS.stride)
-        scales = kinematics.scales_from_demos(retrieval.demo_features(FLAGS.demos, keep))
+            store = datastore.with_values(store, datastore.target_values(params, cfg, FLAGS.demos, keep))
+        store = datastore.subsample(store, FLAGS.stride)
+        scales = kinematics.scales_from_demos(datastore.demo_features(FLAGS.demos, keep))
     except (FileNotFoundError, ValueError) as e:
         raise app.UsageError(str(e)) from e
-    retrieval.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params),
+    datastore.save(FLAGS.out, store, spec, tok, checkpoint.fingerprint(params),
                    extra={"demos": os.path.abspath(FLAGS.demos), "holdout_episodes": held,
                           "metric_scales": list(scales), "stride": FLAGS.stride, "values": FLAGS.values, "metric_features": list(kinematics.FEATURES)})
     size = sum(f.stat().st_size for f in Path(FLAGS.out).iterdir())

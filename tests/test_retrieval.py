@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from heisd_jax import retrieval
+from heisd_jax.offline import datastore
 from heisd_jax.tokenizer import ActionTokenizer
 
 TOK = ActionTokenizer((-1.0,) * 7, (1.0,) * 7, 300)
@@ -18,12 +19,12 @@ def _episodes(rng, n=6, t=25):
 
 @pytest.fixture(scope="module")
 def store():
-    return retrieval.build(SPEC, TOK, _episodes(np.random.default_rng(0)))
+    return datastore.build(SPEC, TOK, _episodes(np.random.default_rng(0)))
 
 
 def test_episode_history_is_the_previous_actions_zero_padded():
     a = np.arange(4 * 7, dtype=np.float32).reshape(4, 7)
-    h = retrieval.episode_history(a, 2)
+    h = datastore.episode_history(a, 2)
     np.testing.assert_array_equal(h[0], 0)
     np.testing.assert_array_equal(h[1], np.stack([np.zeros(7), a[0]]))
     np.testing.assert_array_equal(h[3], a[1:3])
@@ -57,7 +58,7 @@ def test_queries_never_match_other_tasks_and_invalid_slots_are_masked(store):
 
 def test_save_load_round_trip_and_refusals(store, tmp_path):
     path = tmp_path / "ds"
-    retrieval.save(path, store, SPEC, TOK, "abc")
+    datastore.save(path, store, SPEC, TOK, "abc")
     loaded, spec, meta = retrieval.load(path, TOK, "abc")
     assert spec == SPEC and meta["size"] == store.size
     np.testing.assert_array_equal(np.asarray(loaded.tokens), np.asarray(store.tokens))
@@ -84,7 +85,7 @@ def test_build_from_demos_keys_each_step_by_its_history(tmp_path):
                  ee_ang_vel=np.zeros((2 * n, 3), np.float32), ee_acc=np.zeros((2 * n, 3), np.float32),
                  gripper_vel=np.zeros(2 * n, np.float32))
     w.add_shard(steps, [dict(task="lift_blue_cylinder", instruction="x", start=i * n, length=n) for i in range(2)])
-    store = retrieval.build_from_demos(w.finalize(), SPEC, TOK)
+    store = datastore.build_from_demos(w.finalize(), SPEC, TOK)
     assert store.size == 2 * n
     assert set(np.asarray(store.task).tolist()) == {[t.name for t in tasks_lib.ALL_TASKS].index("lift_blue_cylinder")}
     keys = np.asarray(store.keys)
@@ -94,15 +95,15 @@ def test_build_from_demos_keys_each_step_by_its_history(tmp_path):
 
 
 def test_holdout_split_is_disjoint_and_covers_every_episode():
-    keep, held = retrieval.split_episodes(25, 0.1)
+    keep, held = datastore.split_episodes(25, 0.1)
     assert sorted(keep + held) == list(range(25)) and not set(keep) & set(held) and held == [9, 19]
-    assert retrieval.split_episodes(5, 0.0) == ([0, 1, 2, 3, 4], [])
+    assert datastore.split_episodes(5, 0.0) == ([0, 1, 2, 3, 4], [])
     with pytest.raises(ValueError, match="holdout"):
-        retrieval.split_episodes(5, 1.0)
+        datastore.split_episodes(5, 1.0)
 
 
 def test_with_values_replaces_the_values_and_refuses_a_mismatch(store):
     new = np.asarray(store.tokens)[:, ::-1].copy()
-    np.testing.assert_array_equal(np.asarray(retrieval.with_values(store, new).tokens), new)
+    np.testing.assert_array_equal(np.asarray(datastore.with_values(store, new).tokens), new)
     with pytest.raises(ValueError, match="do not match"):
-        retrieval.with_values(store, new[1:])
+        datastore.with_values(store, new[1:])

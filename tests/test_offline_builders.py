@@ -1,0 +1,63 @@
+"""The offline builders (heisd_jax.offline): the boundary calibration's rule on a small
+synthetic measurement, and the run-time retrieval module standing without them."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from heisd_jax.offline import boundary
+
+
+def _measured(rng, n=40):
+    """Metric 0..3.9 in steps of 0.1; retrieval needs fewer passes than the drafter below
+    metric 2 and more from 2 on; the 25 nearest keys (dist 0..0.24) are accepted whole
+    except the 3rd, the rest never."""
+    metric = np.arange(n) / 10.0
+    dist = np.arange(n) / 100.0
+    accepted = np.where(np.arange(n) < 25, 7, 3)
+    accepted[2] = 6
+    perm = rng.permutation(n)  # the rule must not depend on the steps' order
+    return {"metric": metric[perm], "tpa_retrieval": np.where(metric < 2.0, 2.0, 5.0)[perm],
+            "tpa_drafter": np.full(n, 3.0), "accepted": accepted[perm], "dist": dist[perm]}
+
+
+def test_boundary_rule_on_a_known_measurement():
+    m = _measured(np.random.default_rng(0))
+    rule = boundary.BoundaryRule(bins=4, hysteresis=0.5, skip_precision=0.9, min_skip_steps=20)
+    edges, table = boundary.metric_table(m, rule.bins)
+    np.testing.assert_allclose(edges, [0.0, 0.975, 1.95, 2.925, 3.9])
+    assert [r["steps"] for r in table] == [10, 10, 10, 10]
+    assert [r["tpa_retrieval"] for r in table] == [2.0, 2.0, 5.0, 5.0]
+    # tau_on: the first bin where retrieval loses starts at 1.95 (its lower edge).
+    result = boundary.calibrate(m, rule, min_dwell=3, about={"held_out_episodes": 2})
+    assert result["tau_on"] == pytest.approx(1.95) and result["tau_off"] == pytest.approx(0.975)
+    # skip_eps: the 25 nearest have 24/25 whole (>= 0.9); adding the 26th gives 24/26 = 0.92,
+    # the 27th 24/27 = 0.89 < 0.9: the last distance that qualifies is the 26th's, 0.25.
+    assert result["skip_eps"] == pytest.approx(0.25)
+    assert list(result) == ["tau_on", "tau_off", "min_dwell", "skip_eps", "table", "steps", "held_out_episodes",
+                            "overall"]
+    assert result["min_dwell"] == 3 and result["steps"] == 40
+    assert result["overall"]["retrieval_whole"] == pytest.approx(24 / 40)
+
+
+def test_boundary_rule_edge_cases():
+    m = _measured(np.random.default_rng(1))
+    m["tpa_retrieval"] = np.full(40, 1.0)  # retrieval never loses: tau_on at the metric's top
+    assert boundary.calibrate(m, boundary.BoundaryRule(bins=4), 3)["tau_on"] == pytest.approx(3.9)
+    m["tpa_retrieval"] = np.full(40, 9.0)  # always loses: tau_on still keeps the lowest bin
+    assert boundary.calibrate(m, boundary.BoundaryRule(bins=4), 3)["tau_on"] == pytest.approx(0.975)
+    # Fewer whole acceptances than min_skip_steps: no skip distance.
+    assert boundary.skip_eps(m["dist"], m["accepted"], 0.9, min_steps=30) == 0.0
+    with pytest.raises(ValueError, match="hysteresis"):
+        boundary.BoundaryRule(hysteresis=1.0)
+    with pytest.raises(ValueError, match="bins"):
+        boundary.BoundaryRule(bins=1)
+
+
+def test_runtime_retrieval_imports_without_the_builders():
+    code = ("import sys, heisd_jax.retrieval; "
+            "bad = [m for m in sys.modules if m.startswith(('heisd_jax.offline', 'envs', 'mujoco'))]; "
+            "assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)
