@@ -3,7 +3,7 @@
   python -m experiments.bench_round --batch_sizes=1,16 --trees=4x2x8,8x4x32
 
 With the shipped target and drafter and random observations, per batch size and tree (all
-in-graph costs, `cost_model.in_graph_ms`: compiled once, median of back-to-back differences):
+in-graph costs, `timing.in_graph_ms`: compiled once, median of back-to-back differences):
   alone      one `spec_decode.round_step` from the state after the prefill (whole state out)
   loop       `spec_decode.rounds` (the decode's `while_loop`) from that state, per round
   unrolled   the same number of rounds as a Python loop inside one jit, per round
@@ -19,7 +19,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, vla, vla_policy
+from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, timing, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -43,7 +43,7 @@ def measure(tp, dp, cfg: vla.VLAConfig, spec: sd.SpecConfig, batch: int, reps: i
         for _ in range(n):
             s = sd.round_step(tp, dp, cfg, spec, s)
         return s
-    ms = lambda fn: cost_model.in_graph_ms(fn, (tp, dp, s0), reps=reps)  # noqa: E731
+    ms = lambda fn: timing.in_graph_ms(fn, (tp, dp, s0), reps=reps)  # noqa: E731
     return {"batch": batch, "rounds": n,
             "alone_ms": ms(lambda tp, dp, s: sd.round_step(tp, dp, cfg, spec, s)),
             "loop_ms": ms(lambda tp, dp, s: sd.rounds(tp, dp, cfg, spec, s)) / n,

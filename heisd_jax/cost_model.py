@@ -2,13 +2,10 @@
 the drafter's passes, and of each budget option's round and fixed part, measured on the
 device in use at the batch size in use, cached on disk.
 
-Every latency is an *in-graph* cost: the piece runs inside one jitted loop n1 and n2 times
-(one compile, the trip count is an argument) and the cost is the difference over n2 - n1,
-so the ~0.1-1.5 ms of dispatch per jitted call (which a real decode pays once per action,
-not per pass) is not counted per pass. The loop carries its inputs through an optimization
-barrier, so XLA can neither hoist the work out of the loop nor drop it. The two runs are
-timed back to back, `reps` times, and the median of the differences is kept: at batch 1
-a piece costs 0.03-0.4 ms and one pair of runs is that noisy.
+Every latency is an *in-graph* cost (`heisd_jax.timing.in_graph_ms`): the piece looped n1
+and n2 times inside one jitted program, the difference over n2 - n1, so the dispatch per
+jitted call (which a real decode pays once per action, not per pass) is not counted per
+pass; the median over back-to-back pairs.
 
 An option's cost is `fixed + rounds x round` (budget.Costs). A draft round can cost more inside
 the decode's `while_loop` than alone (experiments/bench_round.py), so for a tree
@@ -37,7 +34,6 @@ calibrating behind a user's back.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 import json
 import os
@@ -50,38 +46,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import budget, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
+from heisd_jax.timing import in_graph_ms
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 FORMAT = 4  # 4: the copy-free KV cache (vla.Block) changed every cost; older tables are re-measured
 DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
-
-
-def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 7) -> float:
-    """Marginal cost in ms of one `fn(*args)` inside a compiled program (see module doc):
-    the median over `reps` back-to-back pairs of (n[1] runs - n[0] runs) / (n[1] - n[0]).
-    Calls with the same `fn` object share one compiled loop."""
-    f = _looped(fn)
-
-    def seconds(count):
-        t0 = time.perf_counter()
-        jax.block_until_ready(f(count, args))
-        return time.perf_counter() - t0
-    seconds(n[1])  # compile + warm-up
-    diffs = [seconds(n[1]) - seconds(n[0]) for _ in range(reps)]
-    return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0])
-
-
-@functools.lru_cache(maxsize=64)
-def _looped(fn: Callable):
-    def loop(count, args):
-        def body(_, carry):
-            args, acc = carry
-            out = fn(*args)
-            args, out = jax.lax.optimization_barrier((args, out))
-            leaf = jax.tree.leaves(out)[0]
-            return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32)
-        return jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32)))[1]
-    return jax.jit(loop)
 
 
 def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: int = 0):

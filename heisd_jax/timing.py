@@ -1,33 +1,78 @@
-"""Wall-clock helpers shared by the benchmark scripts and the cost-model calibration, and
-per-kernel summaries of `jax.profiler` traces (experiments/trace_decode.py)."""
+"""How a piece of JAX code is timed, in one place, three ways:
+
+- wall clock per call (`timed`, `wall_seconds`, `median_seconds`): a jitted call blocked
+  on, after an untimed warm-up call; what the benchmark scripts report;
+- in-graph marginal cost (`in_graph_ms`): the piece looped n1 and n2 times inside one
+  compiled program, the difference per run; what the cost model's tables hold (a decode
+  pays one dispatch per action, not per pass);
+- per kernel (`trace_calls`, `kernel_summary`): a `jax.profiler` trace summarised per
+  device timeline (experiments/trace_decode.py).
+"""
 
 from __future__ import annotations
 
 import collections
 import gzip
 import json
+import functools
 import time
 from pathlib import Path
+from typing import Callable
 
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+
+def timed(fn):
+    """(fn()'s result, blocked on; the wall-clock seconds of the call)."""
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn())
+    return out, time.perf_counter() - t0
 
 
 def wall_seconds(fn, reps: int) -> list[float]:
     """Wall-clock of each of `reps` calls of fn() (results blocked on), after one untimed
     call (compilation and warm-up excluded)."""
     jax.block_until_ready(fn())
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return times
+    return [timed(fn)[1] for _ in range(reps)]
 
 
 def median_seconds(fn, reps: int) -> float:
     """Median of `wall_seconds`."""
     return float(np.median(wall_seconds(fn, reps)))
+
+
+def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 7) -> float:
+    """Marginal cost in ms of one `fn(*args)` inside a compiled program: the median over
+    `reps` back-to-back pairs of (n[1] runs - n[0] runs) / (n[1] - n[0]).
+
+    The piece runs inside one jitted loop n[0] and n[1] times (one compile, the trip count is
+    an argument), so the ~0.1-1.5 ms of dispatch per jitted call is not counted per run. The
+    loop carries its inputs through an optimization barrier, so XLA can neither hoist the
+    work out of the loop nor drop it. The median over pairs, since at batch 1 a piece costs
+    0.03-0.4 ms and one pair of runs is that noisy. Calls with the same `fn` object share
+    one compiled loop."""
+    f = _looped(fn)
+
+    def seconds(count):
+        return timed(lambda: f(count, args))[1]
+    seconds(n[1])  # compile + warm-up
+    diffs = [seconds(n[1]) - seconds(n[0]) for _ in range(reps)]
+    return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0])
+
+
+@functools.lru_cache(maxsize=64)
+def _looped(fn: Callable):
+    def loop(count, args):
+        def body(_, carry):
+            args, acc = carry
+            out = fn(*args)
+            args, out = jax.lax.optimization_barrier((args, out))
+            leaf = jax.tree.leaves(out)[0]
+            return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32)
+        return jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32)))[1]
+    return jax.jit(loop)
 
 
 def trace_calls(fn, calls: int, directory: str | Path) -> Path | None:
