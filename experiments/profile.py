@@ -36,7 +36,7 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, vla, vla_policy
+from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, timing, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -54,12 +54,6 @@ cli.existing_dir("drafter", "drafter checkpoint")
 flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
 cli.existing_dir("datastore", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
-
-
-def _timed(fn, *args):
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    return out, time.perf_counter() - t0
 
 
 def component_fns(meta: dict, name: str):
@@ -152,16 +146,16 @@ def main(argv):
     n_running = 0.0
     for t in range(FLAGS.steps):
         for k, (fn, *args) in parts(states, pstate).items():
-            times.setdefault(k, []).append(_timed(fn, *args)[1])
+            times.setdefault(k, []).append(timing.timed(lambda: fn(*args))[1])
         running = np.asarray(~states.done, np.float32)
-        (actions, pstate, stats), dt = _timed(act, params, states, pstate, act_keys)
+        (actions, pstate, stats), dt = timing.timed(lambda: act(params, states, pstate, act_keys))
         times.setdefault("act", []).append(dt)
         for k, v in stats.items():
             totals[k] = totals.get(k, 0.0) + float((np.asarray(v) * running).sum())
         n_running += float(running.sum())
         if FLAGS.trace_dir and t == 1:
             jax.profiler.start_trace(FLAGS.trace_dir)
-        states, dt = _timed(step, states, actions)
+        states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
         if FLAGS.trace_dir and t == 3:
             jax.profiler.stop_trace()
