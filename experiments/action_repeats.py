@@ -25,7 +25,7 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax.numpy as jnp
 import numpy as np
 
-from envs import tasks as tasks_lib
+from envs import language, tasks as tasks_lib
 from envs.env import TabletopEnv
 from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint
 from heisd_jax import acceptance, checkpoint, methods
@@ -64,7 +64,7 @@ def main(argv):
     del argv
     env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
     _, actions, done = bench_methods.record(env, FLAGS.record_envs, FLAGS.steps)
-    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     bins = np.asarray(tok.to_bins(np.asarray(actions))).astype(np.int32)  # [T, B, 7]
     live = ~np.asarray(done)
     pair = live[1:] & live[:-1]  # [T-1, B]

@@ -31,7 +31,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
-from envs import demos
+from envs import demos, language
 from heisd_jax.timing import median_seconds
 from heisd_jax import checkpoint, data, spec_decode, vla, vla_policy
 from experiments import cli
@@ -107,7 +107,7 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     try:
-        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
         dparams = checkpoint.load_drafter(FLAGS.drafter, cfg, params)[0] if FLAGS.drafter else None
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e

@@ -35,8 +35,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from envs import rollout, tasks as tasks_lib
+from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
+from heisd_jax.observation import Observation
 from heisd_jax.timing import median_seconds, wall_seconds
 from heisd_jax import checkpoint, cost_model, methods, results_io, retrieval, vla, vla_policy
 from experiments import cli
@@ -68,13 +69,6 @@ flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --
 
 
 @struct.dataclass
-class _Obs:
-    image: jnp.ndarray
-    instruction: jnp.ndarray
-    proprio: jnp.ndarray
-
-
-@struct.dataclass
 class _Kin:
     lin_vel: jnp.ndarray
     ang_vel: jnp.ndarray
@@ -90,7 +84,7 @@ class _Info:
 @struct.dataclass
 class ReplayState:
     """The fields of `envs.env.EnvState` that decoding policies read."""
-    obs: _Obs
+    obs: Observation
     kin: _Kin
     info: _Info
     step: jnp.ndarray
@@ -108,7 +102,7 @@ def record(env: TabletopEnv, n_envs: int, n_steps: int):
     final, traj = fn(policy.params, keys, jnp.asarray(tids, jnp.int32))
     t = n_steps
     states = ReplayState(
-        obs=_Obs(image=traj["image"], instruction=jnp.broadcast_to(final.obs.instruction, (t,) + final.obs.instruction.shape),
+        obs=Observation(image=traj["image"], instruction=jnp.broadcast_to(final.obs.instruction, (t,) + final.obs.instruction.shape),
                  proprio=traj["proprio"]),
         kin=_Kin(lin_vel=traj["ee_vel"], ang_vel=traj["ee_ang_vel"], lin_acc=traj["ee_acc"],
                  gripper_vel=traj["gripper_vel"]),
@@ -120,7 +114,7 @@ def record(env: TabletopEnv, n_envs: int, n_steps: int):
 def prefill_policy(env: TabletopEnv):
     """The target's prefill alone (its greedy first token repeated): the floor of any method
     that prefills every action."""
-    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
 
     def decode(params, cfg, obs):
         logits, _, _ = vla.prefill(params, cfg, obs)
@@ -193,12 +187,12 @@ def main(argv):
     states, ar_actions, done = record(env, FLAGS.record_envs, FLAGS.steps)
     print(f"recorded {FLAGS.record_envs} envs x {FLAGS.steps} steps of {FLAGS.record_method} in "
           f"{time.perf_counter() - t0:.0f}s (compile included) on {jax.devices()[0].device_kind}", flush=True)
-    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     running = ~np.asarray(done)
     rows, query_ms = [], {}
     store_path = Path(FLAGS.datastore)
     if any(n in ("retrieval", "heisd") for n, _ in method_list) and store_path.exists():
-        params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        params, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
         store, key_spec, _ = retrieval.load(store_path, tok, checkpoint.fingerprint(params))
         for b in sizes:  # the kNN query alone (it must stay far below one target pass)
             keys = jnp.zeros((b, key_spec.dim), jnp.float32)

@@ -19,6 +19,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from envs import language
 from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, timing, vla, vla_policy
 from experiments import cli
 
@@ -60,7 +61,7 @@ def main(argv):
             raise ValueError("batch sizes must be >= 1")
     except ValueError as e:
         raise app.UsageError(f"{e} (--trees like 4x2x8/8x4x32, --batch_sizes like 1,16)") from e
-    tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     dp = checkpoint.load_drafter(FLAGS.drafter, cfg, tp)[0]
     for spec in specs:
         try:

@@ -19,7 +19,7 @@ from pathlib import Path
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import demos
+from envs import demos, language
 from heisd_jax import checkpoint, kinematics, retrieval, vla_policy
 from heisd_jax.offline import datastore
 from experiments import cli
@@ -47,7 +47,7 @@ def main(argv):
         raise app.UsageError(f"{FLAGS.out} exists; pass --overwrite to replace it (only once the new one is complete)")
     if FLAGS.history < 0 or FLAGS.pos_scale <= 0:
         raise app.UsageError("--history must be >= 0 and --pos_scale > 0")
-    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
     try:
         n = len(demos.DemoDataset(FLAGS.demos))

@@ -22,7 +22,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import numpy as np
 
-from envs import demos, tasks as tasks_lib
+from envs import demos, language, tasks as tasks_lib
 from heisd_jax import checkpoint, data, methods, results_io, retrieval, vla_policy
 from heisd_jax.offline import boundary, datastore
 from experiments import cli
@@ -80,7 +80,7 @@ def main(argv):
     settings = dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv)
     try:
         settings = methods.check_settings("heisd", settings)
-        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
         dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg, params)
         store, key_spec, meta = retrieval.load(FLAGS.datastore, tok, checkpoint.fingerprint(params))
         ds = demos.DemoDataset(FLAGS.demos)

@@ -25,7 +25,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import rollout, tasks as tasks_lib
+from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import checkpoint, methods, results_io, vla, vla_policy
 from heisd_jax.tokenizer import ACTION_DIM
@@ -50,7 +50,7 @@ def main(argv):
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites)
         env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
-        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint)
+        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     policy = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)

@@ -31,6 +31,7 @@ import jax.numpy as jnp
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+from envs import language
 from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla, vla_policy
 from experiments import cli
 
@@ -78,7 +79,7 @@ def main(argv):
         (tree,) = budget.parse_trees(FLAGS.tree)
     except ValueError as e:
         raise app.UsageError(f"{e} (--batch_sizes like 256,1024; --tree like 4x2x8)") from e
-    tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     dp = checkpoint.load_drafter(FLAGS.drafter, cfg, tp)[0]
     hcfg = hybrid.HybridConfig()
     hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, tree))

@@ -26,7 +26,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import demos
+from envs import demos, language
 from heisd_jax import checkpoint, data, train, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
@@ -106,7 +106,7 @@ def train_vla(out: Path, cfg: train.TrainConfig):
     init = None
     if FLAGS.init:
         try:
-            init = checkpoint.load_policy(FLAGS.init)
+            init = checkpoint.load_policy(FLAGS.init, text_vocab=language.VOCAB)
         except ValueError as e:
             raise app.UsageError(str(e)) from e
         model_cfg = dataclasses.replace(init[1], dtype="float32")
@@ -154,7 +154,7 @@ def train_vla(out: Path, cfg: train.TrainConfig):
 
 
 def train_drafter(out: Path, cfg: train.TrainConfig):
-    tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target)
+    tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target, text_vocab=language.VOCAB)
     host, val_host, _, _ = _tables()
     if host.image.shape[1:] != model_cfg.image_shape:
         raise app.UsageError(f"the target takes images {model_cfg.image_shape}, the demos hold {host.image.shape[1:]}")

@@ -27,8 +27,8 @@ DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, S
 
 
 def observation(states: EnvState) -> vla.Observation:
-    """The VLA's inputs from a batch of env states."""
-    return vla.Observation(image=states.obs.image, instruction=states.obs.instruction, proprio=states.obs.proprio)
+    """The VLA's inputs from a batch of env states (the env's observation type is the VLA's)."""
+    return states.obs
 
 
 def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn,
