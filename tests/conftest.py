@@ -12,8 +12,6 @@ from envs.env import EnvConfig, TabletopEnv
 
 import tiny_models
 
-BATCH = 2
-
 
 class Compiled:
     """A physics-only env (all 40 tasks) with batched reset/step compiled once."""
@@ -34,7 +32,7 @@ def compiled():
     return Compiled()
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def tiny_hybrid():
     """The hybrid/budget tests' models and batch: (params, observations, AR tokens)."""
     tp, dp = tiny_models.aligned_pair(0.35)

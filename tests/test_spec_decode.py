@@ -18,8 +18,11 @@ def params():
     return vla.init_params(CFG, jax.random.PRNGKey(0)), drafter.init_params(CFG, jax.random.PRNGKey(1))
 
 
+_spec_decode = jax.jit(sd.spec_decode, static_argnums=(2, 3))  # compiled once per (spec, batch shape)
+
+
 def _decode(tp, dp, spec, obs):
-    return jax.jit(lambda t, d, o: sd.spec_decode(t, d, CFG, spec, o))(tp, dp, obs)
+    return _spec_decode(tp, dp, CFG, spec, obs)
 
 
 def test_strict_equals_ar_with_random_parameters(params):

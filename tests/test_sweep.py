@@ -1,12 +1,16 @@
 """The sweep entry point (resume after an interruption) and the report."""
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import pytest
+
 from experiments import report
-from heisd_jax import results_io
+from heisd_jax import methods, results_io
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -24,7 +28,9 @@ def test_sweep_resumes_after_an_interruption_without_loss_or_duplicates(tmp_path
     _sweep(out)
     sweep, recs = results_io.read_sweep(out)
     assert sorted(r["cell"]["suite"] for r in recs) == ["object", "spatial"]
-    assert all(r["suite"]["episodes"] == 1 and r["git_commit"] is not None and "jax" in r["versions"] for r in recs)
+    for r in recs:  # provenance: this checkout's commit (a hash, not None), the library versions
+        assert r["suite"]["episodes"] == 1 and re.fullmatch(r"[0-9a-f]{40}", r["git_commit"] or "")
+        assert set(r["versions"]) == {"jax", "flax", "mujoco"} and r["versions"]["jax"] == jax.__version__
     lines = out.read_text().splitlines(keepends=True)
     out.write_text("".join(lines[:-1]) + lines[-1][: len(lines[-1]) // 2])  # crash mid-write of the last cell
     stdout = _sweep(out)
@@ -34,6 +40,19 @@ def test_sweep_resumes_after_an_interruption_without_loss_or_duplicates(tmp_path
     bad = subprocess.run([sys.executable, "-m", "experiments.sweep", "--methods=expert,nope", f"--out={out}"],
                          capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert bad.returncode != 0 and "valid methods" in bad.stderr
+
+
+def test_method_list_is_parsed_and_every_setting_checked_before_anything_runs():
+    assert methods.parse_method_list("ar,drafter:acceptance=token_relaxed,relax_bins=9;heisd:skip=false") == [
+        ("ar", {}), ("drafter", {"acceptance": "token_relaxed", "relax_bins": 9}), ("heisd", {"skip": False})]
+    for spec, reason in [("expert,nope", "unknown method 'nope'; valid methods: ar, drafter, expert, heisd, retrieval"),
+                         ("drafter:top_k", "'top_k' of 'drafter' is not key=value"),
+                         ("ar:top_k=4", r"unknown settings \['top_k'\]; valid: dtype"),
+                         ("drafter:top_k=4,depth=2,total_tokens=99", r"total_tokens must be in 1..top_k\*depth=8"),
+                         ("drafter:relax_bins=9", "relax_bins is only used with acceptance='token_relaxed'"),
+                         ("heisd:skip=maybe", "not a boolean")]:
+        with pytest.raises(ValueError, match=reason):
+            methods.parse_method_list(spec)
 
 
 def _record(method, settings, suite, sr, ms, al=None):
@@ -53,4 +72,5 @@ def test_report_measures_speedup_against_ar_of_the_same_sweep(tmp_path):
     text = report.table(list(rows.values()))
     assert "drafter:relax_bins=9" in text and "1.25" in text
     pngs = report.plots(list(rows.values()), tmp_path / "plots")
-    assert all(p.stat().st_size > 1000 for p in pngs)
+    assert sorted(p.name for p in pngs) == ["acceptance_length_hist.png", "speedup_vs_sr_drop.png"]
+    assert all(p.read_bytes().startswith(b"\x89PNG") and p.stat().st_size > 1000 for p in pngs)

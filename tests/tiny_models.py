@@ -35,8 +35,12 @@ def aligned_pair(noise: float):
     return tp, dict(dp, fc={"kernel": fc, "bias": jnp.zeros(d)}, block=block)
 
 
+_ar = jax.jit(lambda t, o: vla.ar_decode(t, CFG, o)[0])  # one program per batch shape, shared by every test
+
+
 def ar(tp, obs):
-    return jax.jit(lambda t, o: vla.ar_decode(t, CFG, o)[0])(tp, obs)
+    """Greedy AR action tokens [B, 7] (the reference every lossless method must equal)."""
+    return _ar(tp, obs)
 
 
 def candidates(ar_tokens, rng):
