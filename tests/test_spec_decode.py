@@ -147,12 +147,13 @@ def test_cache_after_commit_equals_one_by_one_decoding():
     n_acc = np.asarray(v.n_accepted)
     assert n_acc.max() > 0
     one = jnp.ones((B, 1, 1), bool)
+    zero = jnp.zeros((B, 1), jnp.int32)
+    step = jax.jit(lambda c, t: vla.commit(c, vla.decode(tp, CFG, c, t, zero, one)[2], zero, jnp.ones((B,), jnp.int32)))
     for b in range(B):
         toks = [int(root[b])] + [int(t) for t in np.asarray(v.tokens[b, :n_acc[b]])]
-        c = jax.tree.map(lambda a: a, cache)
-        for t in toks:
-            _, _, kv = vla.decode(tp, CFG, c, jnp.full((B, 1), t), jnp.zeros((B, 1), jnp.int32), one)
-            c = vla.commit(c, kv, jnp.zeros((B, 1), jnp.int32), jnp.ones((B,), jnp.int32))
+        c = cache
+        for t in toks:  # one token at a time into a cache of its own (the whole batch fed row b's token)
+            c = step(c, jnp.full((B, 1), t))
         n = CFG.prompt_len + len(toks)
         assert int(v.cache.length[b]) == n
         np.testing.assert_allclose(np.asarray(v.cache.k[:, b, :n]), np.asarray(c.k[:, b, :n]), atol=2e-5)
