@@ -36,6 +36,7 @@ def runs():
     return dagger(1.0), dagger(0.0), plain()
 
 
+@pytest.mark.slow  # the `runs` fixture compiles three expert/learner rollouts: ~3 min on 2 cores
 def test_beta_one_is_the_teachers_own_rollout(runs):
     at_one, _, own = runs
     for field in ("proprio", "action", "ee_vel"):  # two programs: equal up to float rounding
@@ -43,6 +44,7 @@ def test_beta_one_is_the_teachers_own_rollout(runs):
     np.testing.assert_array_equal(at_one["policy_action"][..., 6], -1.0)  # the learner's own, recorded beside
 
 
+@pytest.mark.slow
 def test_beta_zero_labels_the_learners_states(runs):
     _, at_zero, own = runs
     # The arm does not move under the still learner (only the servos settle) ...

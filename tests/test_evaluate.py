@@ -35,6 +35,7 @@ def _run_main(argv):
     return out.stdout
 
 
+@pytest.mark.slow  # two evaluations, each in its own process (compiles the AR rollout)
 def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, tmp_path):
     out = tmp_path / "ar.json"
     argv = ["--method=ar", f"--checkpoint={tiny_ckpt}", f"--tasks={TASKS}", "--suites=all", "--episodes=1",

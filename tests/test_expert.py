@@ -23,6 +23,7 @@ def expert_results():
     return env, results, seen
 
 
+@pytest.mark.slow  # `expert_results` runs 8 tasks to the end under the expert
 def test_expert_solves_sampled_initial_states_of_every_suite(expert_results):
     env, results, _ = expert_results
     assert {t.suite for t in env.tasks} == set(tasks.SUITES)
@@ -30,6 +31,7 @@ def test_expert_solves_sampled_initial_states_of_every_suite(expert_results):
     assert not failed, failed
 
 
+@pytest.mark.slow
 def test_evaluator_reports_every_episode_once(expert_results):
     env, results, seen = expert_results
     assert len(seen) == 1 and seen[0]["episodes"] == len(SAMPLE)

@@ -12,6 +12,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.slow  # two processes, each compiling the expert rollout (~2 min each on 2 cores)
 TASKS = ["left_block_plate", "pick_red_block"]
 
 # Runs the expert on 2 episodes of each task in 4 parallel envs, prints the results as JSON.

@@ -23,6 +23,7 @@ def _sweep(out, *extra):
     return p.stdout
 
 
+@pytest.mark.slow  # the entry point, three times in its own process
 def test_sweep_resumes_after_an_interruption_without_loss_or_duplicates(tmp_path):
     out = tmp_path / "sweep.jsonl"
     _sweep(out)
