@@ -14,6 +14,7 @@ processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 import sys
@@ -60,8 +61,15 @@ def setup_compilation_cache(path: str | os.PathLike | None) -> str | None:
             jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_SECONDS)
         if "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES" not in os.environ:
             jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)  # any size
-    # JAX decides once per process, at its first compile, whether the cache is used: start over.
-    compilation_cache.reset_cache()
+    # JAX decides once per process, at its first compile, whether the cache is used: start over
+    # (quietly: under absl, JAX's INFO line about it would reach stderr).
+    jax_logger = logging.getLogger("jax._src.compilation_cache")
+    level = jax_logger.level
+    jax_logger.setLevel(logging.WARNING)
+    try:
+        compilation_cache.reset_cache()
+    finally:
+        jax_logger.setLevel(level)
     return path
 
 
