@@ -34,6 +34,17 @@ def test_documented_example_decodes_the_shipped_checkpoint(monkeypatch):
     assert np.all(np.asarray(ns["sd_stats"]["target_passes"]) <= 7)
 
 
+def test_readme_example_decodes_the_shipped_checkpoint(monkeypatch):
+    readme = (ROOT / "README.md").read_text()
+    block = re.search(r"## Decoding in your own JAX code\n\n((?:    .*\n)+)", readme).group(1)
+    monkeypatch.chdir(ROOT)
+    ns = {}
+    exec(compile("\n".join(line[4:] for line in block.splitlines()), "README.md", "exec"), ns)  # noqa: S102
+    assert ns["tokens"].shape == (2, 7) and ns["actions"].shape == (2, 7)
+    assert np.all(np.abs(np.asarray(ns["actions"])) <= 1.0)
+    assert np.all(np.asarray(ns["stats"]["target_passes"]) == 7)
+
+
 def test_decode_action_equals_ar_and_strict_speculative_decoding(tiny_hybrid):
     params, obs, ar_tokens = tiny_hybrid
     tokens, stats = heisd_jax.decode_action(params["target"], CFG, obs)
