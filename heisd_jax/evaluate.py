@@ -68,6 +68,7 @@ class BatchRollout:
         if self._compiled is None:
             t0 = time.perf_counter()
             self._compiled = self._run.lower(*inputs).compile()
+            sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
             self.compile_seconds = time.perf_counter() - t0
 
     def __call__(self, inputs: tuple):

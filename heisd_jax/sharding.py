@@ -66,6 +66,13 @@ def replicate(mesh: Mesh, tree: Any) -> Any:
     return jax.device_put(tree, NamedSharding(mesh, P()))
 
 
+def sync(name: str) -> None:
+    """Across hosts, waits until every process reaches `name` (e.g. all have compiled, so that
+    a timed batch does not include waiting for a slower process's compilation)."""
+    if jax.process_count() > 1:
+        multihost_utils.sync_global_devices(name)
+
+
 def fetch(tree: Any) -> Any:
     """Host copies of (possibly sharded) arrays; across hosts, gathered on every process."""
     if jax.process_count() > 1:
