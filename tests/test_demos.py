@@ -65,6 +65,7 @@ def test_existing_dataset_is_kept_unless_overwrite(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["ds"]
 
 
+@pytest.mark.slow  # compiles and runs the expert's rendered rollout: ~100 s on 2 cores
 def test_collect_demos_end_to_end(tmp_path):
     from experiments import collect_demos
 

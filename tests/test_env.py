@@ -103,6 +103,7 @@ def test_ik_rotates_about_the_commanded_axis(compiled):
     assert np.all(w[:, 2] > 1.5) and np.all(np.abs(w[:, :2]) < 0.3)
 
 
+@pytest.mark.slow  # one MJX physics step and forward kinematics run eagerly: ~70 s on 2 cores
 def test_kinematic_velocities_agree_with_finite_differences(compiled):
     env = compiled.env
     s = compiled.start([0, 0])
