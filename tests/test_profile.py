@@ -9,7 +9,6 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.slow  # the entry point in its own process (the shipped checkpoints, compiled)
 
 
 def _run(argv):
@@ -17,6 +16,7 @@ def _run(argv):
                           cwd=ROOT, timeout=1200)
 
 
+@pytest.mark.slow  # the entry point in its own process, compiling every part of the method
 def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
     out = _run(["--method=heisd", "--settings=budget=fixed,top_k=4,depth=2,total_tokens=8", "--suites=goal", "--batch=2",
                 "--steps=4", f"--trace_dir={tmp_path / 'trace'}", f"--out={tmp_path / 'p.json'}"])
