@@ -6,8 +6,9 @@ On a 2-core machine (jaxlib 0.10.2) it does not: after compiling, the rollout de
 matrix / Newton Hessian, nv = 33): once a call's batch is large enough (its FLOP estimate
 over jaxlib's 2e5 threshold) it splits the batch into tasks on that same pool and blocks
 until they finish, and when the thunk executor runs two such calls at once no thread is left to run
-the tasks. `--xla_cpu_multi_thread_eigen=false` does not touch this pool. The test stays an
-expected failure until the env avoids it (e.g. a Cholesky that does not block a pool thread).
+the tasks. `--xla_cpu_multi_thread_eigen=false` does not touch this pool. Lowering
+`cholesky_p` on CPU to XLA's own `hlo.cholesky` instead (no LAPACK call) lets the same rollout
+finish. The test stays an expected failure until the env avoids the deadlock.
 """
 
 import os
