@@ -75,7 +75,10 @@ class TabletopEnv:
         self.table = tasks_lib.compile_tasks(self.tasks)
         self.global_index = np.array([tasks_lib.ALL_TASKS.index(t) for t in self.tasks], np.int32)
         self.mj_model = scene.build_model()
-        self.model = mjx.put_model(self.mj_model)
+        # This process's own device: with several processes (jax.distributed) jax.devices()[0]
+        # is process 0's, which a jitted rollout elsewhere cannot close over.
+        device = jax.local_devices()[0]
+        self.model = mjx.put_model(self.mj_model, device=device)
         self.ids = scene.scene_ids(self.mj_model)
         self.instructions = jnp.asarray(np.stack([language.encode(t.instruction) for t in self.tasks]))
         self.base_rgb = jnp.asarray(self.mj_model.geom_rgba[:, :3], jnp.float32)
@@ -83,7 +86,7 @@ class TabletopEnv:
         d = mujoco.MjData(self.mj_model)
         d.qpos[self.ids.arm_qpos] = robot.HOME_QPOS
         d.qpos[self.ids.finger_qpos] = robot.FINGER_OPEN
-        self._data0 = mjx.put_data(self.mj_model, d)
+        self._data0 = mjx.put_data(self.mj_model, d, device=device)
 
     # ---- keys -------------------------------------------------------------------------
     def initial_state_keys(self, task_ids, episodes, split: str = "eval") -> jax.Array:

@@ -33,15 +33,14 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos, language
 from heisd_jax.timing import median_seconds
-from heisd_jax import checkpoint, data, spec_decode, vla, vla_policy
+from heisd_jax import checkpoint, data, spec_decode, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["1", "16", "256"], "Batch sizes (rows decoded together).")
 cli.positive_int_list("batch_sizes")
 flags.DEFINE_integer("reps", 30, "Timed calls per measurement (the median is reported).")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
+cli.define_paths("checkpoint")
 flags.DEFINE_enum("dtype", "", ["", "float32", "bfloat16"], "Compute dtype override (default: the checkpoint's).")
 flags.DEFINE_string("drafter", "", "Drafter checkpoint: also time speculative decoding.")
 cli.existing_dir("drafter", "drafter checkpoint")

@@ -20,7 +20,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, timing, vla, vla_policy
+from heisd_jax import budget, checkpoint, cost_model, spec_decode as sd, timing, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -28,10 +28,7 @@ flags.DEFINE_list("batch_sizes", ["1", "16"], "Batch sizes.")
 cli.positive_int_list("batch_sizes")
 flags.DEFINE_string("trees", "4x2x8", "Trees TOPKxDEPTHxTOTAL, separated by '/' or ','.")
 flags.DEFINE_integer("reps", 7, "Back-to-back pairs per measurement (median).")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
+cli.define_paths("checkpoint", "drafter")
 
 
 def measure(tp, dp, cfg: vla.VLAConfig, spec: sd.SpecConfig, batch: int, reps: int) -> dict:

@@ -39,7 +39,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, sharding
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -51,10 +51,7 @@ flags.DEFINE_list("batch_sizes", ["1", "64", "256", "1024"],
                   "first D local devices; plain B: the most local devices that divide B).")
 flags.DEFINE_integer("episodes", 1024, "Episodes timed per batch size (rounded up to whole batches).")
 flags.DEFINE_integer("seq_episodes", 16, "Episodes timed in the sequential loop.")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "--method=drafter: the drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
+cli.define_paths("checkpoint", "drafter")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
 flags.DEFINE_bool("compile_only", False, "Compile the run's programs (fills JAX_COMPILATION_CACHE_DIR), time nothing.")
 

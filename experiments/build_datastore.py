@@ -20,15 +20,14 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos, language
-from heisd_jax import checkpoint, kinematics, retrieval, vla_policy
+from heisd_jax import checkpoint, kinematics, retrieval
 from heisd_jax.offline import datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("demos", "data/demos", "Demonstrations dataset (experiments.collect_demos).")
 cli.existing_dir("demos", "demonstrations dataset")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Target VLA checkpoint (tokenizer, fingerprint).")
-cli.existing_dir("checkpoint", "policy checkpoint")
+cli.define_paths("checkpoint")
 flags.DEFINE_string("out", "checkpoints/datastore", "Output directory.")
 flags.DEFINE_integer("history", 2, "Previous actions in each key.")
 flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the key, per metre.")

@@ -23,19 +23,14 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import numpy as np
 
 from envs import demos, language, tasks as tasks_lib
-from heisd_jax import checkpoint, data, methods, results_io, retrieval, vla_policy
+from heisd_jax import checkpoint, data, methods, results_io, retrieval
 from heisd_jax.offline import boundary, datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("demos", "data/demos", "The demonstrations the datastore was built from.")
 cli.existing_dir("demos", "demonstrations dataset")
-flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Datastore (experiments.build_datastore).")
-cli.existing_dir("datastore", "datastore")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Target VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
+cli.define_paths("datastore", "checkpoint", "drafter")
 flags.DEFINE_string("settings", "", "heisd settings as key=value,key=value (as in experiments.sweep).")
 flags.DEFINE_integer("max_steps", 20000, "At most this many held-out steps.")
 flags.DEFINE_integer("batch", 512, "Steps decoded at once.")

@@ -162,3 +162,23 @@ def define_calibrate_costs() -> None:
         return
     flags.DEFINE_bool("calibrate_costs", False, "budget=auto: where no decode-cost table is cached for this device, "
                       "model, settings and batch size, measure it now (1-3 min, then cached) instead of failing.")
+
+
+PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts
+    "checkpoint": ("policy checkpoint", "Target VLA checkpoint (default: the shipped one)."),
+    "drafter": ("drafter checkpoint", "Drafter checkpoint, trained on the target (default: the shipped one)."),
+    "datastore": ("datastore", "Retrieval datastore with its boundary calibration (default: the shipped one)."),
+}
+
+
+def define_paths(*names: str) -> None:
+    """--checkpoint / --drafter / --datastore, defaulting to the shipped artifacts and checked
+    when flags parse (an existing directory)."""
+    from heisd_jax import vla_policy  # noqa: PLC0415  (after the entry point's `import envs`)
+
+    defaults = {"checkpoint": vla_policy.DEFAULT_CHECKPOINT, "drafter": vla_policy.DEFAULT_DRAFTER,
+                "datastore": vla_policy.DEFAULT_DATASTORE}
+    for name in names:
+        what, text = PATH_FLAGS[name]
+        flags.DEFINE_string(name, str(defaults[name]), text)
+        existing_dir(name, what)

@@ -23,7 +23,7 @@ from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import cost_model, evaluate as ev, methods, results_io, sharding, vla_policy
+from heisd_jax import cost_model, evaluate as ev, methods, results_io, sharding
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
@@ -34,12 +34,7 @@ flags.DEFINE_list("tasks", [], "Only these task names (default: every task of th
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the first N of the fixed 50).")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "Policy checkpoint of the VLA methods.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Speculative methods: the drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
-flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "retrieval/heisd: the retrieval datastore.")
-cli.existing_dir("datastore", "datastore")
+cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
     flags.declare_key_flag(_name)
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),

@@ -26,13 +26,12 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods, results_io, vla_policy
+from heisd_jax import methods, results_io
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 
 FLAGS = flags.FLAGS
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
+cli.define_paths("checkpoint")
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_integer("episodes", 10, "Evaluation initial states per task (0..49).")
 flags.DEFINE_integer("num_envs", 400, "Episodes run in parallel.")

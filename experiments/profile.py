@@ -47,12 +47,7 @@ flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'a
 flags.DEFINE_integer("batch", 16, "Envs decoded together.")
 flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Write a jax.profiler trace of 3 steps here.")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
-flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
-cli.existing_dir("datastore", "datastore")
+cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
 

@@ -31,7 +31,7 @@ import jax
 import mujoco
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, sharding, vla_policy
+from heisd_jax import evaluate as ev, methods, results_io, sharding
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -43,12 +43,7 @@ flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
 flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
-flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore (retrieval, heisd).")
-cli.existing_dir("datastore", "datastore")
+cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
 

@@ -32,8 +32,7 @@ from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 
 FLAGS = flags.FLAGS
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
+cli.define_paths("checkpoint")
 flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle through.")
 flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is compared against).")
 flags.DEFINE_integer("steps", 60, "Control steps recorded.")

@@ -25,7 +25,7 @@ import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods, vla_policy
+from heisd_jax import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -35,12 +35,7 @@ flags.DEFINE_integer("episode", 0, "Evaluation initial state (0..49).")
 flags.DEFINE_enum("method", "heisd", ["retrieval", "heisd"], "Hybrid method.")
 flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value.")
 flags.DEFINE_integer("steps", 0, "Control steps (default: the task's limit).")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
-flags.DEFINE_string("datastore", str(vla_policy.DEFAULT_DATASTORE), "Retrieval datastore.")
-cli.existing_dir("datastore", "datastore")
+cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "results/timeline.png", "PNG path (the numbers go to the same name, .json).")
 
 MODES = (("retrieval_verified", "retrieval, verified", "tab:blue"), ("skipped", "retrieval, skipped", "tab:green"),

@@ -32,7 +32,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla, vla_policy
+from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -45,10 +45,7 @@ flags.DEFINE_integer("top", 15, "Kernels listed per function and device timeline
 flags.DEFINE_string("trace_dir", "/tmp/heisd_trace", "Where the traces go (one folder per function and batch).")
 flags.DEFINE_string("hlo_dir", "", "Also write each function's optimised HLO here.")
 flags.DEFINE_string("out", "", "Optional JSON with the timings and kernel summaries.")
-flags.DEFINE_string("checkpoint", str(vla_policy.DEFAULT_CHECKPOINT), "VLA checkpoint.")
-cli.existing_dir("checkpoint", "policy checkpoint")
-flags.DEFINE_string("drafter", str(vla_policy.DEFAULT_DRAFTER), "Drafter checkpoint.")
-cli.existing_dir("drafter", "drafter checkpoint")
+cli.define_paths("checkpoint", "drafter")
 
 
 def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int):

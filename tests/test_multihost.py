@@ -47,13 +47,6 @@ print("RESULT " + json.dumps({"process": jax.process_index(), "processes": jax.p
 """
 
 
-# MJX's put_model/put_data place an array on jax.devices()[0] unless told otherwise: with
-# several processes that is process 0's device, so on every other process the env's model and
-# initial data cannot be closed over by the jitted rollout ("Closing over jax.Array that spans
-# non-addressable devices"; process 0 then waits at its first collective). TabletopEnv must put
-# them on jax.local_devices()[0]; with that, both processes give the single-process results.
-ENV_ON_PROCESS_0 = pytest.mark.xfail(reason="envs.TabletopEnv puts its MJX model and data on jax.devices()[0], "
-                                     "another process's device", strict=False)
 
 
 def _free_port() -> int:
@@ -91,7 +84,6 @@ def runs():
 
 
 @pytest.mark.slow
-@ENV_ON_PROCESS_0
 def test_each_process_owns_half_of_the_env_batch(runs):
     for pid, key in enumerate(("host0", "host1")):
         r = runs[key]
@@ -102,7 +94,6 @@ def test_each_process_owns_half_of_the_env_batch(runs):
 
 
 @pytest.mark.slow
-@ENV_ON_PROCESS_0
 def test_two_processes_give_the_single_process_results(runs):
     single = runs["single"]["results"]
     assert sorted(single) == TASKS and all(len(single[t]) == EPISODES for t in TASKS)
