@@ -2,9 +2,9 @@
 
 * `--xla_cpu_use_fusion_emitters=false`: with jaxlib >= 0.7, XLA:CPU's fusion emitters make
   MJX ~13x slower on CPU.
-* `--xla_cpu_multi_thread_eigen=false`: XLA:CPU's multi-threaded Eigen pool can wedge
-  (a permanent hang at 0% CPU while fetching a result) on large vmapped MJX rollouts; seen
-  here on 2 cores with jaxlib 0.10.2 at 40 envs, reproducibly.
+* `--xla_cpu_multi_thread_eigen=false`: keeps XLA:CPU's Eigen kernels single-threaded.
+  It does not prevent the known CPU hang of large rollouts, a deadlock inside jaxlib's
+  batched LAPACK Cholesky on the intra-op pool (docs/evaluator.md).
 Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag they do not
 know, although its name still appears in their binaries. So whether each flag is accepted
 is probed once, in a child process that starts JAX's backends with it, and the answer is
