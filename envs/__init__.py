@@ -9,6 +9,7 @@ import io as _io
 from envs import _xla
 
 _xla.configure()
+_xla.cholesky_without_lapack_on_cpu()
 
 # mujoco.mjx prints a notice when the optional GPU-only Warp backend is absent; we use MJX's
 # JAX implementation, so keep that notice out of users' logs.

@@ -66,3 +66,20 @@ def configure() -> None:
         current = os.environ.get("XLA_FLAGS", "")
         if name not in current and flag_supported(name, value):
             os.environ["XLA_FLAGS"] = (current + f" --{name}={value}").strip()
+
+
+def cholesky_without_lapack_on_cpu() -> None:
+    """Lowers `cholesky_p` on CPU to XLA's own Cholesky instead of jaxlib's batched LAPACK
+    kernel. That kernel splits a large batch (MJX factors every env's mass matrix and Newton
+    Hessian) into tasks on XLA:CPU's intra-op pool and blocks until they finish; when two
+    such calls run at once on a 2-thread pool, no thread is left to run the tasks and the
+    rollout deadlocks for good (docs/evaluator.md). XLA's expander has no such wait. GPU
+    and TPU lowerings are untouched. Uses JAX's internal lowering registry: where it is not
+    there, nothing changes."""
+    try:
+        from jax._src.interpreters import mlir
+        from jax._src.lax import linalg
+        lowering = linalg._cholesky_lowering  # noqa: SLF001  (the platform-independent HLO lowering)
+    except (ImportError, AttributeError):
+        return
+    mlir.register_lowering(linalg.cholesky_p, lowering, platform="cpu")
