@@ -68,18 +68,32 @@ def configure() -> None:
             os.environ["XLA_FLAGS"] = (current + f" --{name}={value}").strip()
 
 
+LAPACK_CHOLESKY_MAX_FLOPS = 1e5  # per call; jaxlib splits a batch over the pool above ~2e5
+
+
 def cholesky_without_lapack_on_cpu() -> None:
-    """Lowers `cholesky_p` on CPU to XLA's own Cholesky instead of jaxlib's batched LAPACK
-    kernel. That kernel splits a large batch (MJX factors every env's mass matrix and Newton
-    Hessian) into tasks on XLA:CPU's intra-op pool and blocks until they finish; when two
-    such calls run at once on a 2-thread pool, no thread is left to run the tasks and the
-    rollout deadlocks for good (docs/evaluator.md). XLA's expander has no such wait. GPU
-    and TPU lowerings are untouched. Uses JAX's internal lowering registry: where it is not
-    there, nothing changes."""
+    """Lowers large batched `cholesky_p` calls on CPU to XLA's own Cholesky instead of
+    jaxlib's batched LAPACK kernel. Above a FLOP threshold that kernel splits its batch
+    (MJX factors every env's mass matrix and Newton Hessian) into tasks on XLA:CPU's
+    intra-op pool and blocks until they finish; when two such calls run at once on a
+    2-thread pool, no thread is left to run the tasks and the rollout deadlocks for good
+    (docs/evaluator.md). Calls under half that threshold (a few envs) keep LAPACK, which is
+    faster there and never splits, so small CPU runs compute exactly as before. GPU and TPU
+    lowerings are untouched. Uses JAX's internal lowering registry: where it is not there,
+    nothing changes."""
     try:
         from jax._src.interpreters import mlir
         from jax._src.lax import linalg
-        lowering = linalg._cholesky_lowering  # noqa: SLF001  (the platform-independent HLO lowering)
+        xla_rule, lapack_rule = linalg._cholesky_lowering, linalg._cholesky_cpu_lowering  # noqa: SLF001
     except (ImportError, AttributeError):
         return
-    mlir.register_lowering(linalg.cholesky_p, lowering, platform="cpu")
+
+    def rule(ctx, operand):
+        shape = ctx.avals_in[0].shape
+        batch = 1
+        for d in shape[:-2]:
+            batch *= d
+        flops = batch * shape[-1] ** 3 / 3
+        return (lapack_rule if flops < LAPACK_CHOLESKY_MAX_FLOPS else xla_rule)(ctx, operand)
+
+    mlir.register_lowering(linalg.cholesky_p, rule, platform="cpu")
