@@ -5,8 +5,8 @@ after compiling: both threads of XLA:CPU's intra-op pool sat in `lapack_spotrf_f
 `jax::ParallelBatchMap` (under MJX's `cho_factor` of the mass matrix / Newton Hessian,
 nv = 33), which splits a large batch into tasks on that same pool and blocks until they
 finish; with two such calls at once no thread is left to run the tasks. `import envs` now
-lowers `cholesky_p` on CPU to XLA's own Cholesky (`envs._xla.cholesky_without_lapack_on_cpu`);
-this test keeps it so."""
+lowers large batched `cholesky_p` calls on CPU to XLA's own Cholesky
+(`envs._xla.cholesky_without_lapack_on_cpu`); this test keeps it so."""
 
 import os
 import subprocess
