@@ -19,10 +19,11 @@ import json
 import os
 import subprocess
 import sys
-from pathlib import Path
+
+from heisd_jax.cache_dirs import cache_root
 
 FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_multi_thread_eigen": "false"}
-_CACHE = Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "heisd_jax" / "xla_flag.json"
+_CACHE = cache_root() / "xla_flag.json"
 
 
 def _fingerprint() -> str:

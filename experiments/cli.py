@@ -22,17 +22,12 @@ from typing import Callable, NoReturn
 
 from absl import app, flags
 
+from heisd_jax.cache_dirs import cache_root
+
 USAGE_EXIT = 2
 # Programs that compile faster than this are not worth a file each (most of a warm start's
 # remaining compile time is tracing, which no cache skips); MJX rollouts take seconds to minutes.
 MIN_COMPILE_SECONDS = 0.2
-
-
-def cache_root() -> Path:
-    """heisd-jax's cache directory: $HEISD_CACHE, else $XDG_CACHE_HOME/heisd_jax, else ~/.cache/heisd_jax."""
-    if os.environ.get("HEISD_CACHE"):
-        return Path(os.environ["HEISD_CACHE"]).expanduser()
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache").expanduser() / "heisd_jax"
 
 
 def default_compilation_cache() -> str:

@@ -36,7 +36,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -45,12 +44,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import budget, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
+from heisd_jax import budget, cache_dirs, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
 from heisd_jax.timing import in_graph_ms
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 FORMAT = 4  # 4: the copy-free KV cache (vla.Block) changed every cost; older tables are re-measured
-DEFAULT_CACHE = Path(os.environ.get("HEISD_CACHE", Path.home() / ".cache" / "heisd_jax")) / "costs"
+DEFAULT_CACHE = cache_dirs.cache_root() / "costs"
 
 
 def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: int = 0):
