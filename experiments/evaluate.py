@@ -91,8 +91,7 @@ def main(argv):
             timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / timing["control_steps"]
             timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
         timing["wall_seconds"] = time.perf_counter() - T_START
-        timing["run_seconds"] = timing["batch_seconds"]
-        timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["run_seconds"]
+        timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
                                                  "timing": timing})
         return summary
@@ -122,7 +121,7 @@ def main(argv):
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
     print(f"time: {timing['wall_seconds']:.0f}s wall = compile {timing['compile_seconds']:.0f}s + run "
-          f"{timing['run_seconds']:.0f}s + host {timing['host_seconds']:.0f}s")
+          f"{timing['batch_seconds']:.0f}s + host {timing['host_seconds']:.0f}s")
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 
