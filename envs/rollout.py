@@ -15,7 +15,7 @@ environment itself.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -52,7 +52,11 @@ def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndar
 
 
 def _act(policy: Policy, state, pstate, act_keys, t):
-    k = jax.vmap(lambda k: jax.random.fold_in(k, t))(act_keys)
+    """The policy's batched action; each env's key is its episode key folded with its own
+    step count (the loop counter `t` where all envs started together), so an episode's
+    keys do not depend on when or in which slot it started."""
+    steps = jnp.broadcast_to(state.step if t is None else t, act_keys.shape[:1])
+    k = jax.vmap(jax.random.fold_in)(act_keys, steps)
     return policy.act(policy.params, state, pstate, k)
 
 
@@ -125,3 +129,98 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
 
     (state, _, _), traj = jax.lax.scan(body, (state, pstate, tstate), jnp.arange(n_steps))
     return state, traj
+
+
+class EpisodeResults(NamedTuple):
+    """Per-episode outcomes of `run_queue`, each [N] (N = the episode queue's length)."""
+    success: jnp.ndarray
+    steps: jnp.ndarray
+    invalid_action: jnp.ndarray
+    unstable: jnp.ndarray
+    totals: Stats  # the policy's decode statistics summed over the episode's steps
+
+
+def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:
+    """Writes `new`'s rows [R] into `old`'s slot rows `rows` [R] (index n: dropped), for every
+    leaf batched over the n slots; other leaves keep `old`."""
+    def put(o, nw):
+        if o.ndim and o.shape[0] == n and nw.shape[1:] == o.shape[1:]:
+            return o.at[rows].set(nw, mode="drop")
+        return o
+    return jax.tree.map(put, old, new)
+
+
+def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
+              num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
+              constrain: Callable[[Any], Any] = lambda tree: tree) -> tuple[EpisodeResults, jnp.ndarray]:
+    """Runs the first `n_valid` episodes of a queue (`keys` [N, 2] initial-state keys and
+    `task_ids` [N], N static) in `num_slots` envs: when an env's episode ends, its outcome
+    is written to the episode's row and the slot takes the next pending episode, so no env
+    waits for the slowest episode of a batch and the loop runs until the queue is empty and
+    every slot has finished.
+
+    An episode's trajectory is the one `run_episodes` gives it (same reset, same policy
+    keys), whichever slot and step it starts at, for policies whose rows do not interact.
+    At most `refills_per_step` slots (default num_slots // 8, at least 1) restart per
+    control step, so a refill resets a few envs rather than the whole batch; a finished slot
+    beyond that waits a step. `max_steps` bounds the loop's control steps (the whole queue),
+    not an episode (each task's own limit ends its episodes). `constrain` applies a sharding
+    constraint to the per-slot carry (identity on one device). Returns the per-episode
+    results and the number of control steps the loop ran."""
+    n_queue, s = keys.shape[0], num_slots
+    r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
+    slot_ep = jnp.arange(s, dtype=jnp.int32)
+    live = slot_ep < n_valid
+    first = jnp.minimum(slot_ep, n_queue - 1)
+    state, pstate, act_keys = _start(env, policy, keys[first], task_ids[first], seed)
+    state = state.replace(done=state.done | ~live)
+    slot_ep = jnp.where(live, slot_ep, n_queue)  # n_queue: an empty slot
+    totals = _stats_shape(policy, state, pstate, act_keys)
+    results = EpisodeResults(
+        success=jnp.zeros(n_queue, bool), steps=jnp.zeros(n_queue, jnp.int32),
+        invalid_action=jnp.zeros(n_queue, bool), unstable=jnp.zeros(n_queue, bool),
+        totals={k: jnp.zeros(n_queue, jnp.float32) for k in totals})
+    next_ep = jnp.minimum(jnp.asarray(n_valid, jnp.int32), s)
+
+    def refill(c):
+        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        free = jnp.nonzero(slot_ep == n_queue, size=r, fill_value=s)[0]  # [r] slot rows, s: none
+        eps = next_ep + jnp.arange(r, dtype=jnp.int32)
+        take = (free < s) & (eps < n_valid)
+        rows = jnp.where(take, free, s)
+        idx = jnp.minimum(eps, n_queue - 1)
+        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed)
+        state = _rows_set(rows, s2, state, s)
+        pstate = _rows_set(rows, p2, pstate, s)
+        act_keys = act_keys.at[rows].set(k2, mode="drop")
+        totals = {k: v.at[rows].set(0.0, mode="drop") for k, v in totals.items()}
+        slot_ep = slot_ep.at[rows].set(eps, mode="drop")
+        return t, next_ep + jnp.sum(take), slot_ep, state, pstate, act_keys, totals, results
+
+    def cond(c):
+        t, _, slot_ep, *_ = c
+        return (t < max_steps) & jnp.any(slot_ep < n_queue)
+
+    def body(c):
+        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        action, pstate, stats = _act(policy, state, pstate, act_keys, None)
+        running = ~state.done
+        totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
+        state = jax.vmap(env.step)(state, action)
+        ended = (slot_ep < n_queue) & state.done
+        at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
+        results = EpisodeResults(
+            success=results.success.at[at].set(state.success, mode="drop"),
+            steps=results.steps.at[at].set(state.step, mode="drop"),
+            invalid_action=results.invalid_action.at[at].set(state.invalid_action, mode="drop"),
+            unstable=results.unstable.at[at].set(state.unstable, mode="drop"),
+            totals={k: v.at[at].set(totals[k], mode="drop") for k, v in results.totals.items()})
+        slot_ep = jnp.where(ended, n_queue, slot_ep)
+        c = (t + 1, next_ep, slot_ep, state, pstate, act_keys, totals, results)
+        c = jax.lax.cond(jnp.any(slot_ep == n_queue) & (next_ep < n_valid), refill, lambda c: c, c)
+        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        return t, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results
+
+    c = (jnp.zeros((), jnp.int32), next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results)
+    c = jax.lax.while_loop(cond, body, c)
+    return c[-1], c[0]

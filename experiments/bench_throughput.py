@@ -79,8 +79,8 @@ def batched(env: TabletopEnv, policy: rollout.Policy, batch: int, n_episodes: in
     outcomes = []
     t0 = time.perf_counter()
     for start in range(0, len(eps), batch):
-        final, _, _ = run(run.inputs(*eps[start: start + batch].T))
-        outcomes += [outcome(final, i) for i in range(batch)]
+        out, _ = run(run.inputs(*eps[start: start + batch].T))
+        outcomes += [(bool(out.success[i]), int(out.steps[i])) for i in range(batch)]
     dt = time.perf_counter() - t0
     return {"mode": "batched", "num_envs": batch, "devices": n_dev, "episodes": len(eps), "seconds": dt,
             "episodes_per_s": len(eps) / dt, "compile_s": run.compile_seconds, "outcomes": outcomes}

@@ -33,6 +33,9 @@ flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the first N of the fixed 50).")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
+flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pending episode: every pending episode in "
+                  "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
+                  "for its slowest, results written after each batch.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
@@ -46,7 +49,7 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs)
+        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs, refill=FLAGS.refill)
         sharding.check_batch(cfg.num_envs, sharding.env_mesh())
     except ValueError as e:
         raise app.UsageError(str(e)) from e

@@ -23,6 +23,9 @@ from heisd_jax import sharding
 class EvalConfig:
     episodes_per_task: int = tasks_lib.N_EVAL_INIT_STATES
     num_envs: int = 64  # episodes run in parallel
+    # An env whose episode ends takes the next pending one (all pending episodes in one call),
+    # instead of batches of num_envs episodes that each wait for their slowest episode.
+    refill: bool = True
 
     def __post_init__(self):
         if not 1 <= self.episodes_per_task <= tasks_lib.N_EVAL_INIT_STATES:
@@ -41,28 +44,51 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -
 
 
 class BatchRollout:
-    """The jitted rollout of one static batch of `num_envs` episodes, sharded over `devices`
-    (default: all; the env batch is split, the policy's parameters replicated; one device:
-    a plain jit). Compiled ahead of time, so that calls time execution only."""
+    """The jitted rollout of `queue` episodes in `num_envs` env slots, sharded over `devices`
+    (default: all; the env slots are split, the policy's parameters replicated; one device: a
+    plain jit). queue == num_envs: one static batch, run until every env is done; queue >
+    num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`).
+    Compiled ahead of time, so that calls time execution only."""
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int = 0,
-                 devices: Sequence[jax.Device] | None = None):
+                 devices: Sequence[jax.Device] | None = None, queue: int | None = None):
         self.env, self.num_envs = env, num_envs
+        self.queue = num_envs if queue is None else queue
+        if self.queue < num_envs:
+            raise ValueError(f"queue ({self.queue}) must hold at least num_envs ({num_envs}) episodes")
         self.mesh = sharding.env_mesh(devices)
         sharding.check_batch(num_envs, self.mesh)
         self.devices = self.mesh.size
         self.params = sharding.replicate(self.mesh, policy.params)
         max_steps = int(max(t.max_steps for t in env.tasks))
-        self._run = jax.jit(lambda params, k, t: rollout.run_episodes(
-            env, dataclasses.replace(policy, params=params), k, t, max_steps, seed))
+        if self.queue == num_envs:
+            def run(params, k, t, n_valid):
+                del n_valid  # padding rows of a static batch are run and ignored
+                final, totals, steps = rollout.run_episodes(env, dataclasses.replace(policy, params=params), k, t,
+                                                            max_steps, seed)
+                return rollout.EpisodeResults(final.success, final.step, final.invalid_action, final.unstable,
+                                              totals), steps
+        else:
+            bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
+            constrain = sharding.slot_constraint(self.mesh, num_envs)
+
+            def run(params, k, t, n_valid):
+                return rollout.run_queue(env, dataclasses.replace(policy, params=params), k, t, n_valid, num_envs,
+                                         bound, seed, constrain=constrain)
+        self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
 
-    def inputs(self, task_ids: np.ndarray, episodes: np.ndarray) -> tuple:
-        """Device inputs for episodes (task_ids[i], episodes[i]), both [num_envs]."""
-        if len(task_ids) != self.num_envs:
-            raise ValueError(f"expected {self.num_envs} episodes, got {len(task_ids)}")
-        keys = np.asarray(self.env.initial_state_keys(task_ids, episodes, split="eval"))  # [B, 2]
-        return (self.params, *sharding.shard_batch(self.mesh, (keys, np.asarray(task_ids, np.int32))))
+    def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None) -> tuple:
+        """Device inputs for episodes (task_ids[i], episodes[i]), both [queue], of which the
+        first `n_valid` (default all) are run; the rest pad the static shape."""
+        if len(task_ids) != self.queue:
+            raise ValueError(f"expected {self.queue} episodes, got {len(task_ids)}")
+        keys = np.asarray(self.env.initial_state_keys(task_ids, episodes, split="eval"))  # [Q, 2]
+        queue = (keys, np.asarray(task_ids, np.int32))
+        queue = sharding.shard_batch(self.mesh, queue) if self.queue == self.num_envs else \
+            sharding.replicate(self.mesh, queue)
+        n = np.int32(self.queue if n_valid is None else n_valid)
+        return (self.params, *queue, sharding.replicate(self.mesh, n))
 
     def compile(self, inputs: tuple) -> None:
         if self._compiled is None:
@@ -71,8 +97,8 @@ class BatchRollout:
             sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
             self.compile_seconds = time.perf_counter() - t0
 
-    def __call__(self, inputs: tuple):
-        """Host copies of (final states, decode totals {stat: [B]}, control steps the batch loop ran)."""
+    def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
+        """Host copies of (per-episode results [queue], control steps the loop ran)."""
         self.compile(inputs)
         return sharding.fetch(self._compiled(*inputs))
 
@@ -82,40 +108,45 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
              devices: Sequence[jax.Device] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
-    decode totals summed over the episode's actions (e.g. target_passes). The env batch is
+    decode totals summed over the episode's actions (e.g. target_passes). The env slots are
     sharded over `devices` (default: all; `num_envs` must be a multiple of their number).
-    `on_batch(results, timing)` is called after every batch with everything so far; timing
-    holds the batch's wall-clock (compilation excluded, reported once as compile_seconds),
+    With `cfg.refill` every pending episode goes into one call, a finished env taking the
+    next one; without, batches of `num_envs` episodes run one after another.
+    `on_batch(results, timing)` is called after every call with everything so far; timing
+    holds the call's wall-clock (compilation excluded, reported once as compile_seconds),
     its control steps (iterations of the batched loop: one batched action each), env steps
     and the number of devices."""
     results = {k: list(v) for k, v in (done or {}).items()}
     todo = pending_episodes(env, cfg, results)
-    run = BatchRollout(env, policy, cfg.num_envs, seed, devices)
-    for start in range(0, len(todo), cfg.num_envs):
-        chunk = todo[start: start + cfg.num_envs]
-        pad = chunk + [chunk[-1]] * (cfg.num_envs - len(chunk))  # static batch shape
+    if not todo:
+        return results
+    per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if cfg.refill else cfg.num_envs
+    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call)
+    for start in range(0, len(todo), per_call):
+        chunk = todo[start: start + per_call]
+        pad = chunk + [chunk[-1]] * (per_call - len(chunk))  # static shape
         tids, eps = np.array(pad).T
-        inputs = run.inputs(tids, eps)
-        run.compile(inputs)  # ahead of time, so batch timings exclude compilation
+        inputs = run.inputs(tids, eps, n_valid=len(chunk))
+        run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
-        final, totals, loop_steps = run(inputs)
+        out, loop_steps = run(inputs)
         dt = time.perf_counter() - t0
         for i, (t, e) in enumerate(chunk):
             name = env.tasks[t].name
             rec = results.setdefault(name, [None] * cfg.episodes_per_task)
             rec += [None] * (cfg.episodes_per_task - len(rec))
             failure = None
-            if final.invalid_action[i]:
+            if out.invalid_action[i]:
                 failure = "invalid_action"
-            elif final.unstable[i]:
+            elif out.unstable[i]:
                 failure = "unstable"
-            elif not final.success[i]:
+            elif not out.success[i]:
                 failure = "timeout"
-            rec[e] = {"success": bool(final.success[i]), "steps": int(final.step[i]), "failure": failure,
-                      "decode": {k: float(v[i]) for k, v in totals.items()}}
+            rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
+                      "decode": {k: float(v[i]) for k, v in out.totals.items()}}
         if on_batch is not None:
             on_batch(results, {"batch_seconds": dt, "compile_seconds": run.compile_seconds, "episodes": len(chunk),
-                               "control_steps": int(loop_steps), "env_steps": int(np.sum(final.step[:len(chunk)])),
+                               "control_steps": int(loop_steps), "env_steps": int(np.sum(out.steps[:len(chunk)])),
                                "devices": run.devices})
     return results
 

@@ -66,6 +66,16 @@ def replicate(mesh: Mesh, tree: Any) -> Any:
     return jax.device_put(tree, NamedSharding(mesh, P()))
 
 
+def slot_constraint(mesh: Mesh, n: int):
+    """A function that keeps every leaf batched over the n env slots split over the mesh
+    inside a jitted loop (leaves of other shapes are left alone); identity on one device."""
+    if mesh.size == 1:
+        return lambda tree: tree
+    spec = NamedSharding(mesh, P(AXIS))
+    return lambda tree: jax.tree.map(
+        lambda x: jax.lax.with_sharding_constraint(x, spec) if x.ndim and x.shape[0] == n else x, tree)
+
+
 def sync(name: str) -> None:
     """Across hosts, waits until every process reaches `name` (e.g. all have compiled, so that
     a timed batch does not include waiting for a slower process's compilation)."""

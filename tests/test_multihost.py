@@ -37,7 +37,7 @@ env = TabletopEnv(tasks.get_tasks("all", sys.argv[4].split(",")), EnvConfig(rend
 policy = expert.policy(env)
 cfg = ev.EvalConfig(episodes_per_task=int(sys.argv[5]), num_envs=int(sys.argv[6]))
 run = ev.BatchRollout(env, policy, cfg.num_envs)
-_, keys, _ = run.inputs(np.zeros(cfg.num_envs, int), np.arange(cfg.num_envs) % cfg.episodes_per_task)
+_, keys, _, _ = run.inputs(np.zeros(cfg.num_envs, int), np.arange(cfg.num_envs) % cfg.episodes_per_task)
 timing = []
 results = ev.evaluate(env, policy, cfg, on_batch=lambda r, t: timing.append(t))
 print("RESULT " + json.dumps({"process": jax.process_index(), "processes": jax.process_count(),

@@ -1,6 +1,7 @@
 """An episode's result does not depend on where it ran: the same episodes evaluated 3 and 4 at
 a time land in other slots, other batches and beside other (and padding) episodes, and end
-identically (success, step, failure)."""
+identically (success, step, failure); so do they when 2 or 4 env slots each take the next
+pending episode as theirs ends (`EvalConfig.refill`), starting at other control steps."""
 
 import pytest
 
@@ -19,24 +20,27 @@ def runs():
     env = TabletopEnv(tasks.get_tasks("all", TASKS), EnvConfig(render=False))
     policy = expert.policy(env)
     out = {}
-    for num_envs in (3, 4):
+    for num_envs, refill in ((3, False), (4, False), (2, True), (4, True)):
         timing = []
-        results = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=EPISODES, num_envs=num_envs),
+        results = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=EPISODES, num_envs=num_envs, refill=refill),
                               on_batch=lambda r, t: timing.append(t))
-        out[num_envs] = results, timing
+        out[num_envs, refill] = results, timing
     return out
 
 
 def test_batches_differ(runs):
-    assert [t["episodes"] for t in runs[3][1]] == [3, 3]
-    assert [t["episodes"] for t in runs[4][1]] == [4, 2]
+    assert [t["episodes"] for t in runs[3, False][1]] == [3, 3]
+    assert [t["episodes"] for t in runs[4, False][1]] == [4, 2]
+    assert [t["episodes"] for t in runs[2, True][1]] == [6]  # one call, slots refilled
 
 
 def test_episode_results_do_not_depend_on_slot_or_batch(runs):
-    (a, _), (b, _) = runs[3], runs[4]
-    assert sorted(a) == sorted(b) == sorted(TASKS)
-    for task in TASKS:
-        assert len(a[task]) == len(b[task]) == EPISODES
-        assert all(ep["steps"] > 0 for ep in a[task])
-        ends = lambda eps: [(ep["success"], ep["steps"], ep["failure"]) for ep in eps]  # noqa: E731
-        assert ends(a[task]) == ends(b[task]), task
+    a = runs[3, False][0]
+    ends = lambda eps: [(ep["success"], ep["steps"], ep["failure"]) for ep in eps]  # noqa: E731
+    for key in ((4, False), (2, True), (4, True)):
+        b = runs[key][0]
+        assert sorted(a) == sorted(b) == sorted(TASKS)
+        for task in TASKS:
+            assert len(a[task]) == len(b[task]) == EPISODES
+            assert all(ep["steps"] > 0 for ep in a[task])
+            assert ends(a[task]) == ends(b[task]), (key, task)

@@ -1,0 +1,104 @@
+"""`rollout.run_queue` (env slots refilled from a queue of episodes) against
+`rollout.run_episodes` (one static batch), on a stand-in env whose episodes last a
+key-dependent number of steps and whose outcome depends on every action the policy took:
+each episode must end exactly as when it runs alone, whichever slot and step it starts at.
+Fast (no physics); tests/test_slots.py checks the same on the MJX env with the expert."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from flax import struct
+
+from envs import rollout
+
+
+@struct.dataclass
+class _State:
+    step: jnp.ndarray
+    length: jnp.ndarray
+    total: jnp.ndarray
+    done: jnp.ndarray
+    success: jnp.ndarray
+    invalid_action: jnp.ndarray
+    unstable: jnp.ndarray
+
+
+class _Env:
+    """Episode length 2..13 steps from the reset key and task; success = the sum of the
+    actions' first entries is positive; finished states are frozen, as TabletopEnv's."""
+
+    def reset(self, key, task_id):
+        length = 2 + jax.random.randint(key, (), 0, 9) + 3 * task_id
+        f = jnp.zeros((), bool)
+        return _State(step=jnp.zeros((), jnp.int32), length=length, total=jnp.zeros(()), done=f, success=f,
+                      invalid_action=f, unstable=f)
+
+    def step(self, state, action):
+        step, total = state.step + 1, state.total + action[0]
+        done = step >= state.length
+        new = state.replace(step=step, total=total, done=done, success=done & (total > 0))
+        return jax.tree.map(lambda old, n: jnp.where(state.done, old, n), state, new)
+
+
+def _policy():
+    def init(params, states):
+        n = states.step.shape[0]
+        return {"count": jnp.zeros(n, jnp.int32), "batch_calls": jnp.zeros((), jnp.int32)}
+
+    def act(params, states, pstate, keys):
+        a = jax.vmap(lambda k: jax.random.normal(k, (7,)))(keys) + 0.1 * pstate["count"][:, None]
+        pstate = {"count": pstate["count"] + 1, "batch_calls": pstate["batch_calls"] + 1}
+        return a, pstate, {"passes": jnp.ones(keys.shape[0]) * 7.0, "first": a[:, 0]}
+
+    return rollout.Policy(name="stand-in", init=init, act=act)
+
+
+N_EPISODES, N_QUEUE = 11, 12  # one padding row
+
+
+@pytest.fixture(scope="module")
+def case():
+    keys = jax.random.split(jax.random.PRNGKey(3), N_QUEUE)
+    task_ids = jnp.arange(N_QUEUE, dtype=jnp.int32) % 2
+    final, totals, steps = jax.jit(lambda k, t: rollout.run_episodes(_Env(), _policy(), k, t, 100))(keys, task_ids)
+    return keys, task_ids, final, totals, int(steps)
+
+
+@pytest.mark.parametrize("slots,refills", [(3, 1), (3, 3), (4, None), (12, None)])
+def test_every_episode_ends_as_when_run_alone(case, slots, refills):
+    keys, task_ids, final, totals, _ = case
+    run = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _policy(), k, t, n, slots, 1000,
+                                                    refills_per_step=refills))
+    out, loop_steps = run(keys, task_ids, jnp.int32(N_EPISODES))
+    v = slice(0, N_EPISODES)
+    np.testing.assert_array_equal(out.steps[v], final.step[v])
+    np.testing.assert_array_equal(out.success[v], final.success[v])
+    assert 0 < int(out.success[v].sum()) < N_EPISODES  # the outcomes depend on the actions
+    for k in ("passes", "first"):
+        np.testing.assert_allclose(out.totals[k][v], totals[k][v], rtol=1e-6, atol=1e-6)
+    np.testing.assert_array_equal(out.totals["passes"][v], 7.0 * final.step[v])
+    assert int(out.steps[N_EPISODES]) == 0  # the padding row never ran
+    # the loop runs until the last episode ends; with one slot per episode, exactly as long as the batch
+    assert int(loop_steps) >= int(final.step[v].max())
+    if slots == N_QUEUE:
+        assert int(loop_steps) == int(final.step[v].max())
+
+
+def test_fewer_slots_run_fewer_env_steps_than_batches_waiting_for_their_slowest(case):
+    keys, task_ids, final, _, _ = case
+    slots = 4
+    out, loop_steps = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _policy(), k, t, n, slots, 1000))(
+        keys, task_ids, jnp.int32(N_QUEUE))
+    lengths = np.asarray(final.step)
+    batched = sum(lengths[i: i + slots].max() for i in range(0, N_QUEUE, slots))  # control steps, 3 batches
+    assert int(loop_steps) < batched
+    assert int(loop_steps) >= -(-lengths.sum() // slots)  # no slot runs two episodes at once
+
+
+def test_the_loop_bound_stops_the_queue(case):
+    keys, task_ids, _, _, _ = case
+    out, loop_steps = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _policy(), k, t, n, 2, 5))(
+        keys, task_ids, jnp.int32(N_EPISODES))
+    assert int(loop_steps) == 5
+    assert int((out.steps > 0).sum()) < N_EPISODES
