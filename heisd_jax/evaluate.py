@@ -120,6 +120,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     todo = pending_episodes(env, cfg, results)
     if not todo:
         return results
+    if cfg.refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
+        todo.sort(key=lambda te: -int(env.tasks[te[0]].max_steps))
     per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if cfg.refill else cfg.num_envs
     run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call)
     for start in range(0, len(todo), per_call):
