@@ -55,8 +55,10 @@ def _act(policy: Policy, state, pstate, act_keys, t):
     """The policy's batched action; each env's key is its episode key folded with its own
     step count (the loop counter `t` where all envs started together), so an episode's
     keys do not depend on when or in which slot it started."""
-    steps = jnp.broadcast_to(state.step if t is None else t, act_keys.shape[:1])
-    k = jax.vmap(jax.random.fold_in)(act_keys, steps)
+    if t is None:
+        k = jax.vmap(jax.random.fold_in)(act_keys, state.step)
+    else:
+        k = jax.vmap(lambda k: jax.random.fold_in(k, t))(act_keys)
     return policy.act(policy.params, state, pstate, k)
 
 
