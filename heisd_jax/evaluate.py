@@ -111,7 +111,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     decode totals summed over the episode's actions (e.g. target_passes). The env slots are
     sharded over `devices` (default: all; `num_envs` must be a multiple of their number).
     With `cfg.refill` every pending episode goes into one call, a finished env taking the
-    next one; without, batches of `num_envs` episodes run one after another.
+    next one; without, or across several processes, batches of `num_envs` episodes run one
+    after another.
     `on_batch(results, timing)` is called after every call with everything so far; timing
     holds the call's wall-clock (compilation excluded, reported once as compile_seconds),
     its control steps (iterations of the batched loop: one batched action each), env steps
@@ -120,9 +121,10 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     todo = pending_episodes(env, cfg, results)
     if not todo:
         return results
-    if cfg.refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
+    refill = cfg.refill and jax.process_count() == 1  # several hosts: batches (refilling is tested on one host)
+    if refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
         todo.sort(key=lambda te: -int(env.tasks[te[0]].max_steps))
-    per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if cfg.refill else cfg.num_envs
+    per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
     run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call)
     for start in range(0, len(todo), per_call):
         chunk = todo[start: start + per_call]

@@ -1,4 +1,5 @@
-"""The batched evaluator sharded over 4 virtual CPU devices gives the unsharded results.
+"""The batched evaluator sharded over 4 virtual CPU devices gives the unsharded results (6
+episodes in 4 env slots, refilled as episodes end).
 
 The device count is fixed when JAX starts, so each run is its own process (both on CPU,
 started together: compiling the expert rollout dominates, ~2 min each on 2 cores)."""
@@ -15,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow  # two processes, each compiling the expert rollout (~2 min each on 2 cores)
 TASKS = ["left_block_plate", "pick_red_block"]
 
-# Runs the expert on 2 episodes of each task in 4 parallel envs, prints the results as JSON.
+# Runs the expert on 3 episodes of each task in 4 parallel envs, prints the results as JSON.
 SCRIPT = """
 import json, sys
 import envs  # XLA CPU flags before JAX starts
@@ -32,7 +33,7 @@ try:
 except ValueError as e:
     out["indivisible_error"] = str(e)
 timing = []
-out["results"] = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=2, num_envs=4),
+out["results"] = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=3, num_envs=4),
                              on_batch=lambda r, t: timing.append(t))
 out["timing"] = timing
 print("RESULT " + json.dumps(out))
@@ -72,7 +73,7 @@ def test_sharded_evaluation_equals_unsharded(runs):
     assert [t["devices"] for t in sharded["timing"]] == [4] and [t["devices"] for t in single["timing"]] == [1]
     assert sorted(sharded["results"]) == TASKS
     for task in TASKS:
-        assert len(sharded["results"][task]) == 2
+        assert len(sharded["results"][task]) == 3
         assert all(ep["steps"] > 0 for ep in sharded["results"][task])
     # success, steps, failure and decode totals of every episode
     assert sharded["results"] == single["results"]
