@@ -35,7 +35,7 @@ from heisd_jax import evaluate as ev
 
 env = TabletopEnv(tasks.get_tasks("all", sys.argv[4].split(",")), EnvConfig(render=False))
 policy = expert.policy(env)
-cfg = ev.EvalConfig(episodes_per_task=int(sys.argv[5]), num_envs=int(sys.argv[6]))
+cfg = ev.EvalConfig(episodes_per_task=int(sys.argv[5]), num_envs=int(sys.argv[6]), refill=False)  # as several processes run
 run = ev.BatchRollout(env, policy, cfg.num_envs)
 _, keys, _, _ = run.inputs(np.zeros(cfg.num_envs, int), np.arange(cfg.num_envs) % cfg.episodes_per_task)
 timing = []
