@@ -12,6 +12,7 @@ is nearer the camera (larger x), "back" nearer the robot.
 from __future__ import annotations
 
 import dataclasses
+from typing import Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -226,3 +227,15 @@ def compile_tasks(tasks: tuple[Task, ...]) -> TaskTable:
         receptacle_slot=jnp.asarray(slot),
         max_steps=jnp.asarray([task.max_steps for task in tasks], jnp.int32),
     )
+
+
+def parse_suite_weights(items: Sequence[str]) -> dict[str, int]:
+    """Per-suite multipliers of the episodes collected per task, from "SUITE:N" entries
+    (suites not named: 1); ValueError naming the bad entry and the valid suites."""
+    out = {}
+    for item in items:
+        suite, sep, n = str(item).partition(":")
+        if not sep or suite not in SUITES or not n.strip().isdigit() or int(n) < 1:
+            raise ValueError(f"bad suite weight {item!r}: expected SUITE:N with N >= 1 and SUITE one of {list(SUITES)}")
+        out[suite] = int(n)
+    return out

@@ -41,6 +41,8 @@ flags.DEFINE_integer("demo_episodes", 75, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
+flags.DEFINE_list("suite_weights", [], "SUITE:N,...: the tasks of these suites get N times the episodes per task in "
+                  "the demonstrations and every DAgger round (e.g. spatial:2,long:2); others 1.")
 flags.DEFINE_list("beta", ["0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -111,6 +113,8 @@ def _beta(r: int) -> float:
 def plan(w: Path) -> list[Stage]:
     """The stages, in order, for the current flags."""
     scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
+    if FLAGS.suite_weights:
+        scope.append(f"--suite_weights={','.join(FLAGS.suite_weights)}")
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              "--label_sigma_bins=2", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
@@ -169,6 +173,8 @@ def _settings() -> dict:
             "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size", "start")
     out = {k: getattr(FLAGS, k) for k in keys}
     out["beta"] = [_beta(r) for r in range(1, FLAGS.rounds + 1)]
+    if FLAGS.suite_weights:  # recorded only when given, so builds made before the flag still resume
+        out["suite_weights"] = list(FLAGS.suite_weights)
     return out
 
 
@@ -250,6 +256,7 @@ def main(argv):
 
     try:
         tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+        tasks_lib.parse_suite_weights(FLAGS.suite_weights)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     if FLAGS.start and not (Path(FLAGS.start) / "0").is_dir():

@@ -29,6 +29,8 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes_per_task", 50, "Training episodes attempted per task.")
+flags.DEFINE_list("suite_weights", [], "SUITE:N,...: the tasks of these suites get N times --episodes_per_task "
+                  "(e.g. spatial:2,long:2 for the suites a policy fails most); others 1.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
 flags.DEFINE_bool("wrist", True, "Also render the wrist camera (tiled right of the agent view).")
@@ -60,6 +62,10 @@ def main(argv):
         raise app.UsageError("--beta needs --policy (without one the expert drives every step)")
     if FLAGS.first_episode < 0:
         raise app.UsageError("--first_episode must be >= 0")
+    try:
+        weights = tasks_lib.parse_suite_weights(FLAGS.suite_weights)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
     dagger = bool(FLAGS.policy)
     if dagger:
         from heisd_jax import methods  # noqa: PLC0415
@@ -85,7 +91,8 @@ def main(argv):
         split="train",
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
-    pairs = [(t, FLAGS.first_episode + e) for t in range(len(task_list)) for e in range(FLAGS.episodes_per_task)]
+    pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
+             for e in range(FLAGS.episodes_per_task * weights.get(task.suite, 1))]
     n_steps = int(max(t.max_steps for t in task_list))
     if dagger:
         # The policy's parameters are an argument, not constants baked into the program.

@@ -14,6 +14,7 @@ CASES = [
     ("evaluate", ["--method=nope"], "ar|drafter|expert|heisd|retrieval"),
     ("bench_decode", ["--batch_sizes=1,x"], "positive integers"),
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
+    ("collect_demos", ["--suite_weights=spatial:2,longg:3", "--out=/nonexistent/demos"], "bad suite weight 'longg:3'"),
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
 ]
 
@@ -62,3 +63,13 @@ def test_method_flags_are_the_settings_fields():
     with pytest.raises(app.UsageError, match="budget_margin is only used with budget=auto"):
         method_flags.given("heisd", fv)
     assert method_flags.given("ar", flags.FlagValues()) == {}
+
+
+def test_suite_weights_parse_and_name_the_bad_entry():
+    from envs import tasks
+
+    assert tasks.parse_suite_weights(["spatial:2", "long:3"]) == {"spatial": 2, "long": 3}
+    assert tasks.parse_suite_weights([]) == {}
+    for bad in ("spatial", "spatial:0", "spatial:x", "nope:2"):
+        with pytest.raises(ValueError, match=f"bad suite weight '{bad}'.*'spatial', 'object', 'goal', 'long'"):
+            tasks.parse_suite_weights([bad])

@@ -71,11 +71,12 @@ def test_collect_demos_end_to_end(tmp_path):
 
     out = tmp_path / "demos"
     flags.FLAGS.mark_as_parsed()
-    with flagsaver.flagsaver(suites="goal", tasks=["lift_blue_cylinder"], episodes_per_task=2, num_envs=2,
+    with flagsaver.flagsaver(suites="goal", tasks=["lift_blue_cylinder"], episodes_per_task=1, suite_weights=["goal:2"],
+                             num_envs=2,
                              image_size=16, out=str(out), action_noise=0.05):
         collect_demos.main([])
     ds = demos.DemoDataset(out)
-    assert ds.meta["n_episodes"] == 2 and ds.meta["split"] == "train"
+    assert ds.meta["n_episodes"] == 2 and ds.meta["split"] == "train"  # 1 per task x 2 for the goal suite
     ep = ds.episode(0)
     n = ds.episodes[0]["length"]
     assert ep["image"].shape == (n, 16, 32, 3) and ep["action"].shape == (n, 7)  # agent view | wrist view
