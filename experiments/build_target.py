@@ -51,6 +51,8 @@ flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy (with 
 flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning.")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
+flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every training stage (Gaussian targets of this "
+                   "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target).")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 4000, "Drafter optimizer steps.")
@@ -116,7 +118,7 @@ def plan(w: Path) -> list[Stage]:
     if FLAGS.suite_weights:
         scope.append(f"--suite_weights={','.join(FLAGS.suite_weights)}")
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
-             "--label_sigma_bins=2", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
+             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *scope, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
@@ -175,6 +177,8 @@ def _settings() -> dict:
     out["beta"] = [_beta(r) for r in range(1, FLAGS.rounds + 1)]
     if FLAGS.suite_weights:  # recorded only when given, so builds made before the flag still resume
         out["suite_weights"] = list(FLAGS.suite_weights)
+    if FLAGS.label_sigma_bins != 2.0:  # likewise
+        out["label_sigma_bins"] = FLAGS.label_sigma_bins
     return out
 
 
@@ -249,6 +253,8 @@ def main(argv):
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
+    if FLAGS.label_sigma_bins < 0:
+        raise app.UsageError(f"--label_sigma_bins must be >= 0, got {FLAGS.label_sigma_bins}")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
     _betas()
