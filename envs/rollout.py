@@ -134,12 +134,17 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
 
 
 class EpisodeResults(NamedTuple):
-    """Per-episode outcomes of `run_queue`, each [N] (N = the episode queue's length)."""
+    """Per-episode outcomes, each [N]: of a batch's envs, or of `run_queue`'s episode queue."""
     success: jnp.ndarray
     steps: jnp.ndarray
     invalid_action: jnp.ndarray
     unstable: jnp.ndarray
     totals: Stats  # the policy's decode statistics summed over the episode's steps
+
+    @classmethod
+    def of(cls, state: EnvState, totals: Stats) -> "EpisodeResults":
+        """The outcomes a batch of (final) env states and their decode totals record."""
+        return cls(state.success, state.step, state.invalid_action, state.unstable, totals)
 
 
 def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:
@@ -178,10 +183,7 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     state = state.replace(done=state.done | ~live)
     slot_ep = jnp.where(live, slot_ep, n_queue)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
-    results = EpisodeResults(
-        success=jnp.zeros(n_queue, bool), steps=jnp.zeros(n_queue, jnp.int32),
-        invalid_action=jnp.zeros(n_queue, bool), unstable=jnp.zeros(n_queue, bool),
-        totals={k: jnp.zeros(n_queue, jnp.float32) for k in totals})
+    results = jax.tree.map(lambda x: jnp.zeros((n_queue,), x.dtype), EpisodeResults.of(state, totals))
     next_ep = jnp.minimum(jnp.asarray(n_valid, jnp.int32), s)
 
     def refill(c):
@@ -211,12 +213,7 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         state = jax.vmap(env.step)(state, action)
         ended = (slot_ep < n_queue) & state.done
         at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
-        results = EpisodeResults(
-            success=results.success.at[at].set(state.success, mode="drop"),
-            steps=results.steps.at[at].set(state.step, mode="drop"),
-            invalid_action=results.invalid_action.at[at].set(state.invalid_action, mode="drop"),
-            unstable=results.unstable.at[at].set(state.unstable, mode="drop"),
-            totals={k: v.at[at].set(totals[k], mode="drop") for k, v in results.totals.items()})
+        results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
         slot_ep = jnp.where(ended, n_queue, slot_ep)
         c = (t + 1, next_ep, slot_ep, state, pstate, act_keys, totals, results)
         c = jax.lax.cond(jnp.any(slot_ep == n_queue) & (next_ep < n_valid), refill, lambda c: c, c)

@@ -66,8 +66,7 @@ class BatchRollout:
                 del n_valid  # padding rows of a static batch are run and ignored
                 final, totals, steps = rollout.run_episodes(env, dataclasses.replace(policy, params=params), k, t,
                                                             max_steps, seed)
-                return rollout.EpisodeResults(final.success, final.step, final.invalid_action, final.unstable,
-                                              totals), steps
+                return rollout.EpisodeResults.of(final, totals), steps
         else:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
             constrain = sharding.slot_constraint(self.mesh, num_envs)
