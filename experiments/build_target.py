@@ -61,6 +61,7 @@ flags.DEFINE_integer("eval_episodes", 50, "Evaluation episodes per task (the fix
 flags.DEFINE_string("suites", "all", "Suites to build on.")
 flags.DEFINE_list("tasks", [], "Only these tasks (smoke tests).")
 flags.DEFINE_list("skip", [], "Stages to skip: eval, drafter, datastore, calibration.")
+flags.DEFINE_bool("dry_run", False, "Print the stages' commands (and which are done) without running any.")
 flags.DEFINE_bool("install", False, "Copy the final target, drafter and datastore into checkpoints/ at the end.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view.")
 flags.DEFINE_string("start", "", "Start the DAgger rounds from this policy checkpoint instead of training a first "
@@ -115,12 +116,12 @@ def _beta(r: int) -> float:
 def plan(w: Path) -> list[Stage]:
     """The stages, in order, for the current flags."""
     scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
-    if FLAGS.suite_weights:
-        scope.append(f"--suite_weights={','.join(FLAGS.suite_weights)}")
+    # Suite weights shape the training data only; the evaluation runs every task's fixed states.
+    collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
-    stages = [Stage("demos", ["collect_demos", *scope, f"--episodes_per_task={FLAGS.demo_episodes}",
+    stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
                     {"kept": r"kept (\d+/\d+)"}),
@@ -135,7 +136,7 @@ def plan(w: Path) -> list[Stage]:
     data = [str(w / "demos")]
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
-        stages.append(Stage(f"dagger{r}", ["collect_demos", *scope, f"--policy={_policy(w, r - 1)}",
+        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
@@ -270,6 +271,11 @@ def main(argv):
     if FLAGS.install and FLAGS.skip:
         raise app.UsageError("--install needs every stage (drop --skip)")
     w = Path(FLAGS.work).absolute()
+    if FLAGS.dry_run:
+        for stage in plan(w):
+            status = "done" if stage.done() else "to run"
+            print(f"{stage.name} ({status}): python -m experiments.{' '.join(stage.args)}")
+        return
     (w / "logs").mkdir(parents=True, exist_ok=True)
     state_path = w / "build.json"
     state = _load_state(state_path)

@@ -82,3 +82,34 @@ def test_build_target_refuses_a_work_dir_built_with_other_settings(tmp_path):
         r.stderr[-3000:]
     assert state.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["build.json", "logs"]  # no stage started
+
+
+def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
+    """Every stage of a build with every option set runs a command that knows each flag it is
+    given (a flag meant for one stage, e.g. --suite_weights for the collections, must not reach
+    another), checked against each command's own flag definitions before any GPU time is spent."""
+    root = Path(__file__).resolve().parents[1]
+    start = tmp_path / "start"
+    (start / "0").mkdir(parents=True)
+    r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
+                        f"--start={start}", "--steps=0", "--rounds=2", "--beta=0.5,0", "--suite_weights=long:2",
+                        "--tasks=pick_red_block,left_block_plate", "--label_sigma_bins=1"],
+                       capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    stages = [line.split(": python -m experiments.", 1) for line in r.stdout.splitlines() if ": python -m " in line]
+    assert [s.split()[0] for s, _ in stages] == ["demos", "dagger1", "train1", "dagger2", "train2", "eval", "drafter",
+                                                 "datastore", "calibration"]
+    assert not (tmp_path / "w").exists()  # a dry run writes nothing
+    by_module = {}
+    for _, cmd in stages:
+        module, *args = cmd.split()
+        by_module.setdefault(module, set()).update(a[2:].split("=")[0] for a in args)
+    list_flags = "import sys, importlib; from absl import flags; importlib.import_module(sys.argv[1]); print(*flags.FLAGS)"
+    procs = {m: subprocess.Popen([sys.executable, "-c", list_flags, f"experiments.{m}"], stdout=subprocess.PIPE,
+                                 stderr=subprocess.PIPE, text=True, cwd=root) for m in by_module}
+    for module, proc in procs.items():
+        out, err = proc.communicate(timeout=300)
+        assert proc.returncode == 0, err[-3000:]
+        unknown = by_module[module] - set(out.split())
+        assert not unknown, f"experiments.{module} does not define {sorted(unknown)}"
+    assert "suite_weights" in by_module["collect_demos"] and "suite_weights" not in by_module["evaluate"]
