@@ -56,6 +56,9 @@ flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every tr
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 4000, "Drafter optimizer steps.")
+flags.DEFINE_integer("drafter_rollout_episodes", 25, "Episodes per task in which the final target drives alone "
+                     "(beta 0), added to the drafter's training states so it learns to predict the target where the "
+                     "target itself goes; 0: none (the drafter sees the demonstrations and DAgger rounds only).")
 flags.DEFINE_integer("num_envs", 1000, "Parallel envs for collection and evaluation.")
 flags.DEFINE_integer("eval_episodes", 50, "Evaluation episodes per task (the fixed evaluation states).")
 flags.DEFINE_string("suites", "all", "Suites to build on.")
@@ -155,6 +158,14 @@ def plan(w: Path) -> list[Stage]:
                                      f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
                             {f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")},
                             expected_episodes=n_tasks * FLAGS.eval_episodes))
+    if "drafter" not in FLAGS.skip and FLAGS.drafter_rollout_episodes:
+        rollouts = w / "target_rollouts"
+        data.append(str(rollouts))
+        stages.append(Stage("target_rollouts", ["collect_demos", *scope, f"--policy={final}", "--beta=0",
+                                                f"--episodes_per_task={FLAGS.drafter_rollout_episodes}",
+                                                f"--first_episode={100000 * (FLAGS.rounds + 1)}",
+                                                f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],
+                            rollouts, {"policy_success": r"policy success ([\d.]+%)"}))
     if "drafter" not in FLAGS.skip:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
                                         f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
@@ -173,7 +184,8 @@ def plan(w: Path) -> list[Stage]:
 
 def _settings() -> dict:
     keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
-            "batch_size", "d_model", "n_layers", "drafter_steps", "suites", "tasks", "image_size", "start")
+            "batch_size", "d_model", "n_layers", "drafter_steps", "drafter_rollout_episodes", "suites", "tasks",
+            "image_size", "start")
     out = {k: getattr(FLAGS, k) for k in keys}
     out["beta"] = [_beta(r) for r in range(1, FLAGS.rounds + 1)]
     if FLAGS.suite_weights:  # recorded only when given, so builds made before the flag still resume
@@ -250,6 +262,8 @@ def main(argv):
         raise app.UsageError(f"--skip: unknown stages {bad}; valid: {', '.join(SKIPPABLE)}")
     if FLAGS.steps < (0 if FLAGS.start else 1):
         raise app.UsageError(f"--steps must be >= 1 (>= 0 with --start), got {FLAGS.steps}")
+    if FLAGS.drafter_rollout_episodes < 0:
+        raise app.UsageError(f"--drafter_rollout_episodes must be >= 0, got {FLAGS.drafter_rollout_episodes}")
     for name in ("demo_episodes", "dagger_episodes", "dagger_steps", "drafter_steps", "num_envs",
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:

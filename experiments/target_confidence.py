@@ -38,11 +38,16 @@ flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is com
 flags.DEFINE_integer("steps", 60, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 200, "States replayed at batch 1 (spread over the recording).")
 flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
+flags.DEFINE_enum("matmul_precision", "default", ["default", "tensorfloat32", "float32"],
+                  "Precision of float32 matrix products (jax_default_matmul_precision): 'default' lets XLA choose "
+                  "(TF32 tensor cores on recent NVIDIA GPUs), 'float32' computes them in full float32.")
 
 
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
+    if FLAGS.matmul_precision != "default":
+        jax.config.update("jax_default_matmul_precision", FLAGS.matmul_precision)
     for name in ("envs", "steps", "batch1_states"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
@@ -66,14 +71,16 @@ def main(argv):
 
     ar_batch = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
     probs_fn = jax.jit(lambda p, o, t: _greedy_probs(p, cfg, o, t))
-    tokens, probs = [], []
+    tokens, probs, gaps = [], [], []
     for t in range(FLAGS.steps):  # AR at the recording's batch size, state by state in time
         obs = vla.Observation(image=jnp.asarray(traj["image"][t]), instruction=jnp.asarray(instr),
                               proprio=jnp.asarray(traj["proprio"][t]))
         tk = ar_batch(params, obs)
         tokens.append(np.asarray(tk))
-        probs.append(np.asarray(probs_fn(params, obs, tk)))
-    tokens, probs = np.stack(tokens), np.stack(probs)  # [T, B, 7]
+        prob, gap = probs_fn(params, obs, tk)
+        probs.append(np.asarray(prob))
+        gaps.append(np.asarray(gap))
+    tokens, probs, gaps = np.stack(tokens), np.stack(probs), np.stack(gaps)  # [T, B, 7]
     live_idx = np.argwhere(live)
     pick = live_idx[np.linspace(0, len(live_idx) - 1, min(FLAGS.batch1_states, len(live_idx))).astype(int)]
     same = []
@@ -81,7 +88,7 @@ def main(argv):
         obs = vla.Observation(image=jnp.asarray(traj["image"][t, b:b + 1]), instruction=jnp.asarray(instr[b:b + 1]),
                               proprio=jnp.asarray(traj["proprio"][t, b:b + 1]))
         same.append(bool(np.array_equal(np.asarray(ar_batch(params, obs))[0], tokens[t, b])))
-    p = probs[live]  # [N, 7]
+    p, g = probs[live], gaps[live]  # [N, 7]
     q = [0.05, 0.25, 0.5, 0.75, 0.95]
     summary = {
         "states": int(live.sum()),
@@ -89,6 +96,9 @@ def main(argv):
         "greedy_prob_mean_per_dim": [round(float(x), 4) for x in p.mean(0)],
         "share_above_0.5": round(float((p > 0.5).mean()), 4),
         "share_above_0.9": round(float((p > 0.9).mean()), 4),
+        # How near the greedy token is to a tie: numeric noise of this size flips the choice.
+        "top2_logit_gap_quantiles": {str(k): float(f"{np.quantile(g, k):.3g}") for k in (0.001, 0.01, 0.05, 0.5)},
+        "share_top2_logit_gap_below": {str(x): round(float((g < x).mean()), 5) for x in (1e-4, 1e-3, 1e-2)},
         "batch1_vs_batch_states": len(same),
         "batch1_vs_batch_identical_actions": round(float(np.mean(same)), 4),
     }
@@ -98,7 +108,8 @@ def main(argv):
     except OSError:
         commit = None
     record = {"command": "python -m experiments.target_confidence " + " ".join(
-                  f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states")),
+                  f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states",
+                                                          "matmul_precision")),
               "commit": commit, "device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d"),
               "batch": n, "summary": summary}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
@@ -107,12 +118,16 @@ def main(argv):
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 
-def _greedy_probs(params, cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray) -> jnp.ndarray:
-    """[B, 7]: the probability of each greedy token under the target, teacher-forced."""
+def _greedy_probs(params, cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray):
+    """([B, 7], [B, 7]): the probability of each greedy token under the target, teacher-forced,
+    and the gap between its two largest action logits."""
     logits, _ = vla.forward(params, cfg, obs, tokens)
     p = cfg.prompt_len
-    lp = jax.nn.log_softmax(vla.action_logits(cfg, logits[:, p - 1: p - 1 + ACTION_DIM]), -1)
-    return jnp.exp(jnp.take_along_axis(lp, (tokens - cfg.first_action_id)[..., None], -1)[..., 0])
+    action_logits = vla.action_logits(cfg, logits[:, p - 1: p - 1 + ACTION_DIM])
+    lp = jax.nn.log_softmax(action_logits, -1)
+    top2 = jax.lax.top_k(action_logits, 2)[0]
+    prob = jnp.exp(jnp.take_along_axis(lp, (tokens - cfg.first_action_id)[..., None], -1)[..., 0])
+    return prob, top2[..., 0] - top2[..., 1]
 
 
 if __name__ == "__main__":

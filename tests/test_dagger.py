@@ -97,8 +97,8 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
                        capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     stages = [line.split(": python -m experiments.", 1) for line in r.stdout.splitlines() if ": python -m " in line]
-    assert [s.split()[0] for s, _ in stages] == ["demos", "dagger1", "train1", "dagger2", "train2", "eval", "drafter",
-                                                 "datastore", "calibration"]
+    assert [s.split()[0] for s, _ in stages] == ["demos", "dagger1", "train1", "dagger2", "train2", "eval",
+                                                 "target_rollouts", "drafter", "datastore", "calibration"]
     assert not (tmp_path / "w").exists()  # a dry run writes nothing
     by_module = {}
     for _, cmd in stages:
