@@ -38,16 +38,14 @@ flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is com
 flags.DEFINE_integer("steps", 60, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 200, "States replayed at batch 1 (spread over the recording).")
 flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
-flags.DEFINE_enum("matmul_precision", "default", ["default", "tensorfloat32", "float32"],
-                  "Precision of float32 matrix products (jax_default_matmul_precision): 'default' lets XLA choose "
-                  "(TF32 tensor cores on recent NVIDIA GPUs), 'float32' computes them in full float32.")
+flags.DEFINE_enum("matmul_precision", vla.VLAConfig.matmul_precision, list(vla.MATMUL_PRECISIONS),
+                  "The target's matrix products (VLAConfig.matmul_precision): 'float32' in full float32, 'default' "
+                  "at XLA's choice (TF32 tensor cores for some shapes on recent NVIDIA GPUs).")
 
 
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    if FLAGS.matmul_precision != "default":
-        jax.config.update("jax_default_matmul_precision", FLAGS.matmul_precision)
     for name in ("envs", "steps", "batch1_states"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
@@ -57,6 +55,7 @@ def main(argv):
         params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
+    cfg = dataclasses.replace(cfg, matmul_precision=FLAGS.matmul_precision)
     policy = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
     n = FLAGS.envs
     tids = np.arange(n) % len(task_list)

@@ -50,6 +50,7 @@ def init_params(cfg: vla.VLAConfig, key: jax.Array) -> dict:
                              jnp.ones((b, t, t), bool))["params"]
 
 
+@vla.at_config_precision
 def step(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, write_slot, mask):
     """T entries against the drafter cache, their keys/values written at slots
     write_slot..write_slot+T-1 (key_mask/length unchanged). mask [B, T, S] says which slots

@@ -39,14 +39,16 @@ def _load_target(env: TabletopEnv, checkpoint_path: str | Path):
     return params, cfg, tok
 
 
-def in_dtype(cfg: vla.VLAConfig, dtype: str, *params):
+def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | None = None):
     """The model config and parameter trees in compute dtype `dtype` (float32, bfloat16):
-    parameters and KV caches are stored in it. Call after loading (fingerprints, which tie
-    drafters and datastores to a target, are of the stored float32 parameters)."""
+    parameters and KV caches are stored in it; with `matmul_precision`, the config's precision
+    of float32 matrix products too. Call after loading (fingerprints, which tie drafters and
+    datastores to a target, are of the stored float32 parameters)."""
     if dtype not in DTYPES:
         raise ValueError(f"unknown dtype {dtype!r}; valid: {', '.join(DTYPES)}")
     cast = lambda x: x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x  # noqa: E731
-    return (vla.VLAConfig(**{**cfg.__dict__, "dtype": dtype}), *(jax.tree.map(cast, p) for p in params))
+    cfg = dataclasses.replace(cfg, dtype=dtype, matmul_precision=matmul_precision or cfg.matmul_precision)
+    return (cfg, *(jax.tree.map(cast, p) for p in params))
 
 
 def _setting(default, help: str, choices: tuple[str, ...] | None = None):
@@ -64,6 +66,9 @@ _DEFAULT_TREES = "/".join("x".join(map(str, t)) for t in budget.DEFAULT_TREES)
 class ARSettings:
     """Greedy autoregressive decoding: the target's prefill, then one pass per token."""
     dtype: str = _setting("float32", "Parameters and KV cache in this dtype.", DTYPES)
+    matmul_precision: str = _setting(vla.VLAConfig.matmul_precision, "float32 matrix products: 'float32' in full "
+                                     "float32 (the same tokens at every batch size), 'default' at XLA's choice (TF32 "
+                                     "tensor cores for some shapes on recent NVIDIA GPUs).", vla.MATMUL_PRECISIONS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -258,7 +263,8 @@ def _build_expert(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
 
 def _build_ar(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
     params, cfg, tok = _load_target(env, paths["checkpoint"])
-    cfg, params = in_dtype(cfg, ARSettings(**given).dtype, params)
+    s = ARSettings(**given)
+    cfg, params = in_dtype(cfg, s.dtype, params, matmul_precision=s.matmul_precision)
     return vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
 
@@ -267,7 +273,8 @@ def _build_drafter(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
     params, cfg, tok = _load_target(env, paths["checkpoint"])
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
-    cfg, params, dparams = in_dtype(cfg, DrafterSettings(**given).dtype, params, dparams)
+    s = DrafterSettings(**given)
+    cfg, params, dparams = in_dtype(cfg, s.dtype, params, dparams, matmul_precision=s.matmul_precision)
     return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
                                       vla_policy.drafter_sd(spec), spec=spec)
 
@@ -285,7 +292,8 @@ def _build_hybrid(name: str):
                              f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
         hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
         hcfg.check_fits(cfg)
-        cfg, params, dparams = in_dtype(cfg, get(name).settings(**given).dtype, params, dparams)
+        s = get(name).settings(**given)
+        cfg, params, dparams = in_dtype(cfg, s.dtype, params, dparams, matmul_precision=s.matmul_precision)
         all_params = {"target": params, "drafter": dparams, "store": store}
         table = None
         if hcfg.budget.mode == "auto":

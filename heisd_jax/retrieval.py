@@ -67,7 +67,9 @@ def make_keys(spec: KeySpec, tok: ActionTokenizer, prev_actions, proprio) -> jnp
 def query(store: Datastore, keys: jnp.ndarray, task: jnp.ndarray, n: int, max_dist: float = jnp.inf):
     """Exact kNN within the query's task. keys [B, dim], task [B] -> (candidate tokens
     [B, n, 7], squared distances [B, n], valid [B, n])."""
-    d2 = (keys * keys).sum(-1, keepdims=True) - 2.0 * keys @ store.keys.T + store.sq_norms[None]
+    # Full float32 (not TF32), so near-equal neighbours rank alike at every batch size.
+    cross = jnp.matmul(keys, store.keys.T, precision=jax.lax.Precision.HIGHEST)
+    d2 = (keys * keys).sum(-1, keepdims=True) - 2.0 * cross + store.sq_norms[None]
     d2 = jnp.where(store.task[None] == task[:, None], jnp.maximum(d2, 0.0), jnp.inf)
     neg, idx = jax.lax.top_k(-d2, n)
     dist = -neg

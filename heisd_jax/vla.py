@@ -17,11 +17,19 @@ scatters only the kept tokens' keys/values into the cache, in place. (Writing th
 into the cache inside the pass makes XLA copy the whole cache on every pass: at batch 1,024
 on an H200 that is half of AR's time, `experiments/trace_decode.py` shows it.) Vocabulary: text
 ids [0, text_vocab), action ids [text_vocab, text_vocab + 256).
+
+Matrix products of a float32 model run in full float32 (`VLAConfig.matmul_precision`), so the
+same state decodes to the same tokens at every batch size: XLA's default on recent NVIDIA
+GPUs runs some shapes on TF32 tensor cores (10-bit mantissa) and others not, and the logits
+of one state at batch 1 and at batch 256 then differ by enough to flip a greedy token whose
+two largest logits are that close (docs/target.md has the measurement).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 
 import flax.linen as nn
 import jax
@@ -52,6 +60,9 @@ class VLAConfig:
     cache_slots: int = 0  # 0: prompt_len + DRAFT_SLOTS (7 actions + the largest draft tree, with room to spare)
     rope_base: float = 10000.0
     dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
+    # Precision of float32 matrix products: "float32" (full, batch-invariant) or "default"
+    # (XLA's choice: TF32 tensor cores for some shapes on recent NVIDIA GPUs). Not used in bfloat16.
+    matmul_precision: str = "float32"
 
     @property
     def n_patches(self) -> int:
@@ -75,6 +86,8 @@ class VLAConfig:
         return self.text_vocab
 
     def __post_init__(self):
+        if self.matmul_precision not in MATMUL_PRECISIONS:
+            raise ValueError(f"matmul_precision {self.matmul_precision!r}: valid are {', '.join(MATMUL_PRECISIONS)}")
         if self.n_views < 1:
             raise ValueError(f"n_views must be >= 1, got {self.n_views}")
         if self.image_size % self.patch_size:
@@ -85,6 +98,22 @@ class VLAConfig:
             object.__setattr__(self, "cache_slots", self.prompt_len + DRAFT_SLOTS)
         if self.cache_slots < self.prompt_len + ACTION_DIM:
             raise ValueError(f"cache_slots {self.cache_slots} < prompt {self.prompt_len} + {ACTION_DIM} actions")
+
+
+MATMUL_PRECISIONS = ("float32", "default")
+
+
+def at_config_precision(fn):
+    """Runs fn(params, cfg, ...) with float32 matrix products at cfg.matmul_precision (the
+    setting applies while fn is traced, so inside jit too)."""
+
+    @functools.wraps(fn)
+    def wrapped(params, cfg: VLAConfig, *args, **kwargs):
+        full = cfg.matmul_precision == "float32" and jnp.dtype(cfg.dtype) == jnp.float32
+        with jax.default_matmul_precision("float32") if full else contextlib.nullcontext():
+            return fn(params, cfg, *args, **kwargs)
+
+    return wrapped
 
 
 @struct.dataclass
@@ -302,6 +331,7 @@ def init_params(cfg: VLAConfig, key: jax.Array) -> dict:
     return VLA(cfg).init(key, obs, jnp.zeros((1, ACTION_DIM), jnp.int32))["params"]
 
 
+@at_config_precision
 def forward(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray):
     """Teacher-forced pass over prompt + tokens (no cache): logits [B, P+T, V], hidden."""
     return VLA(cfg).apply({"params": params}, obs, tokens)
@@ -336,6 +366,7 @@ def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.nda
     return logits[:, p - 1], hidden[:, :p], x, logits[:, p:], hidden[:, p:], cache, blk
 
 
+@at_config_precision
 def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     model = VLA(cfg)
     b = obs.image.shape[0]
@@ -362,6 +393,7 @@ def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     return logits, hidden, x, cache, Block(k=k[:, :, p:], v=v[:, :, p:])
 
 
+@at_config_precision
 def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
     """T tokens [B, T] against the cache (which is not changed).
 
@@ -403,6 +435,7 @@ def commit(cache: KVCache, block: Block, src: jnp.ndarray, n: jnp.ndarray) -> KV
     return KVCache(k=k, v=v, key_mask=key_mask, length=new_len.astype(jnp.int32))
 
 
+@at_config_precision
 def prompt_embeddings(params, cfg: VLAConfig, obs: Observation) -> jnp.ndarray:
     """The prompt's input embeddings [B, P, D] (vision encoder, text and proprio tokens)."""
     return nn.apply(lambda m: m.prompt_embeddings(obs), VLA(cfg))({"params": params})
@@ -413,6 +446,7 @@ def embed_tokens(params, tokens: jnp.ndarray) -> jnp.ndarray:
     return params["embed"]["embedding"][tokens]
 
 
+@at_config_precision
 def action_head(params, cfg: VLAConfig, hidden: jnp.ndarray) -> jnp.ndarray:
     """The target's output head restricted to the 256 action ids: hidden [..., D] -> [..., 256]."""
     return (hidden @ params["head"]["kernel"][:, cfg.first_action_id:].astype(hidden.dtype)).astype(jnp.float32)

@@ -56,6 +56,50 @@ def test_boundary_rule_edge_cases():
         boundary.BoundaryRule(bins=1)
 
 
+def test_group_table_per_phase():
+    """Per-group rows (the draft-source analysis by expert phase): the same statistics as the
+    metric bins, each group's share of the steps, empty groups left out, in `names` order."""
+    m = _measured(np.random.default_rng(1))
+    groups = np.where(m["metric"] < 2.0, 2, 0)  # "c" below metric 2, "a" from 2 on, "b" never
+    rows = boundary.group_table(m, groups, ("a", "b", "c"))
+    assert [r["group"] for r in rows] == ["a", "c"]
+    a, c = rows
+    assert a["steps"] == c["steps"] == 20 and a["share"] == c["share"] == 0.5
+    assert (a["tpa_retrieval"], c["tpa_retrieval"], a["tpa_drafter"]) == (5.0, 2.0, 3.0)
+    assert c["retrieval_whole"] == 19 / 20 and a["retrieval_whole"] == 5 / 20
+
+
+def test_closed_loop_steps_use_each_envs_own_executed_history():
+    """The draft-source analysis turns a recorded [T, B] rollout into decode inputs: only the
+    steps each env ran, its instruction and task, the actions it executed before each step as
+    the retrieval history, and the previous step's velocity for the kinematic features."""
+    from experiments.draft_sources import closed_loop_steps  # noqa: PLC0415
+
+    t, b, h = 4, 3, 2
+    rng = np.random.default_rng(0)
+    traj = {"image": rng.integers(0, 255, (t, b, 2, 2, 3), dtype=np.uint8), "proprio": rng.normal(size=(t, b, 8)),
+            "policy_action": np.arange(t * b * 7, dtype=np.float32).reshape(t, b, 7) / 100,
+            "ee_vel": rng.normal(size=(t, b, 3)), "ee_ang_vel": rng.normal(size=(t, b, 3)),
+            "ee_acc": rng.normal(size=(t, b, 3)), "gripper_vel": rng.normal(size=(t, b)),
+            "teacher_stats": {"phase": np.tile(np.arange(t)[:, None], (1, b))}}
+    instr = np.arange(b * 5).reshape(b, 5)
+    steps, phase = closed_loop_steps(traj, np.array([3, 0, 4]), instr, np.array([7, 8, 9]), h)
+    assert len(phase) == 7 and phase.tolist() == [0, 1, 2, 0, 1, 2, 3]
+    assert steps["task"].tolist() == [7] * 3 + [9] * 4
+    np.testing.assert_array_equal(steps["instruction"][3:], np.repeat(instr[2][None], 4, 0))
+    np.testing.assert_array_equal(steps["image"][3:], traj["image"][:, 2])
+    # env 2's step 2 saw its own executed actions of steps 0 and 1
+    np.testing.assert_allclose(steps["prev"][5], traj["policy_action"][:2, 2])
+    np.testing.assert_allclose(steps["prev"][3], 0.0)  # nothing before the first step
+    from heisd_jax import kinematics  # noqa: PLC0415
+
+    want = kinematics.features(traj["ee_vel"][1, 2], traj["ee_ang_vel"][1, 2], traj["ee_acc"][1, 2],
+                               traj["gripper_vel"][1, 2], traj["ee_vel"][0, 2])
+    np.testing.assert_allclose(steps["feat"][4], np.asarray(want), rtol=1e-5)
+    with pytest.raises(ValueError, match="no running steps"):
+        closed_loop_steps(traj, np.zeros(b, int), instr, np.array([7, 8, 9]), h)
+
+
 def test_runtime_retrieval_imports_without_the_builders():
     code = ("import sys, heisd_jax.retrieval; "
             "bad = [m for m in sys.modules if m.startswith(('heisd_jax.offline', 'envs', 'mujoco'))]; "

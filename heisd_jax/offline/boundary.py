@@ -73,23 +73,31 @@ def measure(params: dict, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, key_spe
     return {"metric": metric, **{k: np.concatenate(v) for k, v in cols.items()}}
 
 
+def _row(measured: dict, m: np.ndarray) -> dict:
+    """Steps, mean TPA both ways, mean accepted length and whole-acceptance rate over mask m."""
+    return {"steps": int(m.sum()), "tpa_retrieval": float(measured["tpa_retrieval"][m].mean()),
+            "tpa_drafter": float(measured["tpa_drafter"][m].mean()),
+            "retrieval_accepted": float(measured["accepted"][m].mean()),
+            "retrieval_whole": float((measured["accepted"][m] == ACTION_DIM).mean())}
+
+
 def metric_table(measured: dict, bins: int) -> tuple[np.ndarray, list[dict]]:
     """(bin edges: the metric's quantiles, duplicates merged; one row per non-empty bin:
     its range, steps, mean TPA both ways, mean accepted length and whole-acceptance rate)."""
     metric = measured["metric"]
     edges = np.unique(np.quantile(metric, np.linspace(0, 1, bins + 1)))
     which = np.clip(np.searchsorted(edges, metric, side="right") - 1, 0, len(edges) - 2)
-    table = []
-    for j in range(len(edges) - 1):
-        m = which == j
-        if not m.any():
-            continue
-        table.append({"metric_lo": float(edges[j]), "metric_hi": float(edges[j + 1]), "steps": int(m.sum()),
-                      "tpa_retrieval": float(measured["tpa_retrieval"][m].mean()),
-                      "tpa_drafter": float(measured["tpa_drafter"][m].mean()),
-                      "retrieval_accepted": float(measured["accepted"][m].mean()),
-                      "retrieval_whole": float((measured["accepted"][m] == ACTION_DIM).mean())})
+    table = [{"metric_lo": float(edges[j]), "metric_hi": float(edges[j + 1]), **_row(measured, which == j)}
+             for j in range(len(edges) - 1) if (which == j).any()]
     return edges, table
+
+
+def group_table(measured: dict, groups: np.ndarray, names: tuple[str, ...]) -> list[dict]:
+    """The same row per group (e.g. the expert's phase of each step: groups [N] int indexing
+    `names`), for the non-empty groups in `names` order, each with its share of the steps."""
+    n = len(groups)
+    return [{"group": name, "share": float((groups == g).sum() / n), **_row(measured, groups == g)}
+            for g, name in enumerate(names) if (groups == g).any()]
 
 
 def thresholds(edges: np.ndarray, table: list[dict], hysteresis: float) -> tuple[float, float]:
