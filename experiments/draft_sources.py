@@ -19,9 +19,7 @@ accepted whole; --plot draws tokens per target pass both ways, per phase and per
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -120,15 +118,9 @@ def main(argv):
     _, by_metric = boundary.metric_table(measured, FLAGS.bins)
     _print("phase", [r["group"] for r in by_phase], by_phase)
     _print("metric bin", [f"{r['metric_lo']:.2f}-{r['metric_hi']:.2f}" for r in by_metric], by_metric)
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
-    except OSError:
-        commit = None
-    record = {"command": "python -m experiments.draft_sources " + " ".join(
+    record = {**results_io.provenance("python -m experiments.draft_sources " + " ".join(
                   f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "drafter", "datastore", "suites", "envs",
-                                                          "steps", "settings", "bins")),
-              "commit": commit, "device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d"),
+                                                          "steps", "settings", "bins"))),
               "steps": len(phase), "by_phase": by_phase, "by_metric": by_metric,
               "overall": boundary.group_table(measured, np.zeros(len(phase), np.int32), ("all",))[0]}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)

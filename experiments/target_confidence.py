@@ -15,7 +15,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -101,15 +100,9 @@ def main(argv):
         "batch1_vs_batch_states": len(same),
         "batch1_vs_batch_identical_actions": round(float(np.mean(same)), 4),
     }
-    try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
-    except OSError:
-        commit = None
-    record = {"command": "python -m experiments.target_confidence " + " ".join(
+    record = {**results_io.provenance("python -m experiments.target_confidence " + " ".join(
                   f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states",
-                                                          "matmul_precision")),
-              "commit": commit, "device": jax.devices()[0].device_kind, "date": time.strftime("%Y-%m-%d"),
+                                                          "matmul_precision"))),
               "batch": n, "summary": summary}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, record)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import os
+import subprocess
+import time
 from pathlib import Path
 
 
@@ -17,6 +19,20 @@ def write_json_atomic(path: str | os.PathLike, obj) -> None:
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def provenance(command: str) -> dict:
+    """What a results file records about its making: the command, the repository's short
+    commit (None outside a git checkout), the first device's kind and the date."""
+    import jax  # noqa: PLC0415
+
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
+    except OSError:
+        commit = None
+    return {"command": command, "commit": commit, "device": jax.devices()[0].device_kind,
+            "date": time.strftime("%Y-%m-%d")}
 
 
 def load_resumable(path: str | os.PathLike, settings: dict) -> dict:

@@ -1,4 +1,9 @@
-"""Result files: atomic writes, resumable loads, refusal of foreign or corrupt files."""
+"""Result files: atomic writes, resumable loads, refusal of foreign or corrupt files, and
+the provenance each records."""
+
+import re
+import subprocess
+from pathlib import Path
 
 import pytest
 
@@ -29,3 +34,11 @@ def test_corrupt_file_is_refused(tmp_path):
     path.write_text('{"settings": {"method": "exp')
     with pytest.raises(ValueError, match="not a readable results file"):
         results_io.load_resumable(path, {"method": "expert"})
+
+
+def test_provenance_names_command_commit_device_and_date():
+    rec = results_io.provenance("python -m experiments.x --a=1")
+    head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                          cwd=Path(__file__).resolve().parents[1]).stdout.strip() or None
+    assert rec["command"] == "python -m experiments.x --a=1" and rec["commit"] == head
+    assert rec["device"] and re.fullmatch(r"\d{4}-\d{2}-\d{2}", rec["date"])
