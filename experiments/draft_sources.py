@@ -31,8 +31,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, kinematics, methods, results_io, retrieval
-from heisd_jax.offline import boundary, datastore
+from heisd_jax import checkpoint, methods, results_io, retrieval
+from heisd_jax.offline import boundary
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 
@@ -47,33 +47,6 @@ flags.DEFINE_integer("batch", 512, "Steps decoded at once.")
 flags.DEFINE_integer("bins", boundary.BoundaryRule.bins, "Kinematic-metric bins (quantiles).")
 flags.DEFINE_string("out", "results/draft_sources.json", "Results JSON.")
 flags.DEFINE_string("plot", "", "PNG of tokens per target pass by phase and by metric bin (optional).")
-
-
-def closed_loop_steps(traj: dict, final_step: np.ndarray, instructions: np.ndarray, tasks: np.ndarray,
-                      history: int) -> tuple[dict, np.ndarray]:
-    """The running steps of a recorded [T, B] trajectory as `boundary.measure`'s inputs, and
-    the expert's phase of each [N]. Rows are env-major (env 0's steps in order, then env 1's).
-    The action history of a step is what the env executed before it (the policy's actions:
-    the teacher only watches), the previous velocity the step before's (zero at the start)."""
-    cols = {k: [] for k in ("image", "instruction", "proprio", "prev", "task", "feat")}
-    phase = []
-    for b in range(len(final_step)):
-        n = int(final_step[b])
-        if n == 0:
-            continue
-        vel = np.asarray(traj["ee_vel"][:n, b], np.float32)
-        prev_vel = np.concatenate([np.zeros((1, 3), np.float32), vel[:-1]])
-        cols["feat"].append(np.asarray(kinematics.features(vel, traj["ee_ang_vel"][:n, b], traj["ee_acc"][:n, b],
-                                                           traj["gripper_vel"][:n, b], prev_vel)))
-        cols["prev"].append(datastore.episode_history(np.asarray(traj["policy_action"][:n, b], np.float32), history))
-        cols["image"].append(traj["image"][:n, b])
-        cols["proprio"].append(traj["proprio"][:n, b])
-        cols["instruction"].append(np.repeat(instructions[b][None], n, 0))
-        cols["task"].append(np.full(n, tasks[b], np.int32))
-        phase.append(np.asarray(traj["teacher_stats"]["phase"][:n, b], np.int32))
-    if not phase:
-        raise ValueError("no running steps were recorded")
-    return {k: np.concatenate(v) for k, v in cols.items()}, np.concatenate(phase)
 
 
 def main(argv):
@@ -108,8 +81,8 @@ def main(argv):
     final, traj = jax.device_get(run(learner.params, keys, jnp.asarray(tids, jnp.int32)))
     # final.step counts the steps an episode ran, capped by the recording's length.
     ran = np.minimum(np.asarray(final.step), FLAGS.steps)
-    steps, phase = closed_loop_steps(traj, ran, np.asarray(env.instructions)[tids], np.asarray(env.global_index)[tids],
-                                     key_spec.history)
+    steps, phase = boundary.closed_loop_steps(traj, ran, np.asarray(env.instructions)[tids],
+                                              np.asarray(env.global_index)[tids], key_spec.history)
     print(f"recorded {n} envs x {FLAGS.steps} steps: {len(phase)} running steps in {time.perf_counter() - t0:.0f}s",
           flush=True)
     measured = boundary.measure({"target": params, "drafter": dparams, "store": store}, cfg, hcfg, key_spec, tok,

@@ -73,8 +73,6 @@ def test_closed_loop_steps_use_each_envs_own_executed_history():
     """The draft-source analysis turns a recorded [T, B] rollout into decode inputs: only the
     steps each env ran, its instruction and task, the actions it executed before each step as
     the retrieval history, and the previous step's velocity for the kinematic features."""
-    from experiments.draft_sources import closed_loop_steps  # noqa: PLC0415
-
     t, b, h = 4, 3, 2
     rng = np.random.default_rng(0)
     traj = {"image": rng.integers(0, 255, (t, b, 2, 2, 3), dtype=np.uint8), "proprio": rng.normal(size=(t, b, 8)),
@@ -83,7 +81,7 @@ def test_closed_loop_steps_use_each_envs_own_executed_history():
             "ee_acc": rng.normal(size=(t, b, 3)), "gripper_vel": rng.normal(size=(t, b)),
             "teacher_stats": {"phase": np.tile(np.arange(t)[:, None], (1, b))}}
     instr = np.arange(b * 5).reshape(b, 5)
-    steps, phase = closed_loop_steps(traj, np.array([3, 0, 4]), instr, np.array([7, 8, 9]), h)
+    steps, phase = boundary.closed_loop_steps(traj, np.array([3, 0, 4]), instr, np.array([7, 8, 9]), h)
     assert len(phase) == 7 and phase.tolist() == [0, 1, 2, 0, 1, 2, 3]
     assert steps["task"].tolist() == [7] * 3 + [9] * 4
     np.testing.assert_array_equal(steps["instruction"][3:], np.repeat(instr[2][None], 4, 0))
@@ -97,7 +95,7 @@ def test_closed_loop_steps_use_each_envs_own_executed_history():
                                traj["gripper_vel"][1, 2], traj["ee_vel"][0, 2])
     np.testing.assert_allclose(steps["feat"][4], np.asarray(want), rtol=1e-5)
     with pytest.raises(ValueError, match="no running steps"):
-        closed_loop_steps(traj, np.zeros(b, int), instr, np.array([7, 8, 9]), h)
+        boundary.closed_loop_steps(traj, np.zeros(b, int), instr, np.array([7, 8, 9]), h)
 
 
 def test_runtime_retrieval_imports_without_the_builders():

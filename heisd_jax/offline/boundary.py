@@ -2,7 +2,8 @@
 (`python -m experiments.calibrate_boundary`, which writes the record `calibrate` returns
 to <datastore>/boundary.json; `heisd_jax.methods.load_calibration` reads it back).
 
-`measure` decodes every held-out step twice with a heisd configuration: retrieval first
+`closed_loop_steps` turns a recorded closed-loop rollout into the same inputs (the
+draft-source analysis, `experiments.draft_sources`). `measure` decodes every step twice with a heisd configuration: retrieval first
 (the candidates verified, drafter rounds for what they leave) and drafter SD alone, and
 records target passes per action (TPA), the retrieval draft's accepted length and the
 nearest key's distance, beside the step's fused kinematic metric. `calibrate` turns those
@@ -25,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import hybrid, kinematics, retrieval, vla
+from heisd_jax.offline.datastore import episode_history
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 
@@ -79,6 +81,33 @@ def _row(measured: dict, m: np.ndarray) -> dict:
             "tpa_drafter": float(measured["tpa_drafter"][m].mean()),
             "retrieval_accepted": float(measured["accepted"][m].mean()),
             "retrieval_whole": float((measured["accepted"][m] == ACTION_DIM).mean())}
+
+
+def closed_loop_steps(traj: dict, final_step: np.ndarray, instructions: np.ndarray, tasks: np.ndarray,
+                      history: int) -> tuple[dict, np.ndarray]:
+    """The running steps of a recorded [T, B] trajectory as `boundary.measure`'s inputs, and
+    the expert's phase of each [N]. Rows are env-major (env 0's steps in order, then env 1's).
+    The action history of a step is what the env executed before it (the policy's actions:
+    the teacher only watches), the previous velocity the step before's (zero at the start)."""
+    cols = {k: [] for k in ("image", "instruction", "proprio", "prev", "task", "feat")}
+    phase = []
+    for b in range(len(final_step)):
+        n = int(final_step[b])
+        if n == 0:
+            continue
+        vel = np.asarray(traj["ee_vel"][:n, b], np.float32)
+        prev_vel = np.concatenate([np.zeros((1, 3), np.float32), vel[:-1]])
+        cols["feat"].append(np.asarray(kinematics.features(vel, traj["ee_ang_vel"][:n, b], traj["ee_acc"][:n, b],
+                                                           traj["gripper_vel"][:n, b], prev_vel)))
+        cols["prev"].append(episode_history(np.asarray(traj["policy_action"][:n, b], np.float32), history))
+        cols["image"].append(traj["image"][:n, b])
+        cols["proprio"].append(traj["proprio"][:n, b])
+        cols["instruction"].append(np.repeat(instructions[b][None], n, 0))
+        cols["task"].append(np.full(n, tasks[b], np.int32))
+        phase.append(np.asarray(traj["teacher_stats"]["phase"][:n, b], np.int32))
+    if not phase:
+        raise ValueError("no running steps were recorded")
+    return {k: np.concatenate(v) for k, v in cols.items()}, np.concatenate(phase)
 
 
 def metric_table(measured: dict, bins: int) -> tuple[np.ndarray, list[dict]]:
