@@ -147,13 +147,14 @@ class EpisodeResults(NamedTuple):
         return cls(state.success, state.step, state.invalid_action, state.unstable, totals)
 
 
-def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:
+def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.ndarray | bool = False) -> Any:
     """Writes `new`'s rows [R] into `old`'s slot rows `rows` [R] (index n: dropped), for every
-    leaf batched over the n slots; other leaves keep `old`."""
+    leaf batched over the n slots; other (batch-wide) leaves keep `old`, or take `new`'s
+    where `shared_too` holds."""
     def put(o, nw):
         if o.ndim and o.shape[0] == n and nw.shape[1:] == o.shape[1:]:
             return o.at[rows].set(nw, mode="drop")
-        return o
+        return jnp.where(shared_too, nw, o) if nw.shape == o.shape else o
     return jax.tree.map(put, old, new)
 
 
@@ -169,44 +170,48 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     An episode's trajectory is the one `run_episodes` gives it (same reset, same policy
     keys), whichever slot and step it starts at, for policies whose rows do not interact.
     At most `refills_per_step` slots (default num_slots // 8, at least 1) restart per
-    control step, so a refill resets a few envs rather than the whole batch; a finished slot
-    beyond that waits a step. `max_steps` bounds the loop's control steps (the whole queue),
-    not an episode (each task's own limit ends its episodes). `constrain` applies a sharding
-    constraint to the per-slot carry (identity on one device). Returns the per-episode
-    results and the number of control steps the loop ran."""
+    loop iteration, so a refill resets a few envs rather than the whole batch; a finished
+    slot beyond that waits a step. The slots start empty and the same refill fills them
+    before the first control step (num_slots / refills_per_step iterations that step
+    nothing): the program holds one env reset, not one for the first batch and one for the
+    refills (the reset is a large share of the compile). Batch-wide policy-state leaves
+    (not per slot) take the first refill's initial values and are kept after. `max_steps`
+    bounds the loop's control steps (the whole queue), not an episode (each task's own
+    limit ends its episodes). `constrain` applies a sharding constraint to the per-slot
+    carry (identity on one device). Returns the per-episode results and the number of
+    control steps the loop ran."""
     n_queue, s = keys.shape[0], num_slots
     r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
-    slot_ep = jnp.arange(s, dtype=jnp.int32)
-    live = slot_ep < n_valid
-    first = jnp.minimum(slot_ep, n_queue - 1)
-    state, pstate, act_keys = _start(env, policy, keys[first], task_ids[first], seed)
-    state = state.replace(done=state.done | ~live)
-    slot_ep = jnp.where(live, slot_ep, n_queue)  # n_queue: an empty slot
+    first = jnp.zeros((s,), jnp.int32)
+    shapes = jax.eval_shape(lambda k, t: _start(env, policy, k, t, seed), keys[first], task_ids[first])
+    state, pstate, act_keys = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)  # overwritten, never stepped
+    slot_ep = jnp.full((s,), n_queue, jnp.int32)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
     results = jax.tree.map(lambda x: jnp.zeros((n_queue,), x.dtype), EpisodeResults.of(state, totals))
-    next_ep = jnp.minimum(jnp.asarray(n_valid, jnp.int32), s)
+    n_valid = jnp.asarray(n_valid, jnp.int32)
+    lanes = jnp.arange(r, dtype=jnp.int32)
 
     def refill(c):
-        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        free = jnp.nonzero(slot_ep == n_queue, size=r, fill_value=s)[0]  # [r] slot rows, s: none
-        eps = next_ep + jnp.arange(r, dtype=jnp.int32)
-        take = (free < s) & (eps < n_valid)
-        rows = jnp.where(take, free, s)
-        idx = jnp.minimum(eps, n_queue - 1)
-        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed)
+        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        eps = next_ep + lanes
+        # Slots still holding the template are set first, in order (episodes past the queue
+        # give them a valid, finished state); then the slots whose episode ended.
+        free = jnp.nonzero(slot_ep == n_queue, size=r, fill_value=s)[0]
+        rows = jnp.where(blank < s, blank + lanes, free)  # [r] slot rows; >= s: none
+        take = (rows < s) & (eps < n_valid)
+        rows = jnp.where(take | (blank < s), rows, s)
+        s2, p2, k2 = _start(env, policy, keys[jnp.minimum(eps, n_queue - 1)], task_ids[jnp.minimum(eps, n_queue - 1)],
+                            seed)
+        s2 = s2.replace(done=s2.done | ~take)
         state = _rows_set(rows, s2, state, s)
-        pstate = _rows_set(rows, p2, pstate, s)
+        pstate = _rows_set(rows, p2, pstate, s, shared_too=blank == 0)
         act_keys = act_keys.at[rows].set(k2, mode="drop")
         totals = {k: v.at[rows].set(0.0, mode="drop") for k, v in totals.items()}
-        slot_ep = slot_ep.at[rows].set(eps, mode="drop")
-        return t, next_ep + jnp.sum(take), slot_ep, state, pstate, act_keys, totals, results
+        slot_ep = slot_ep.at[jnp.where(take, rows, s)].set(eps, mode="drop")
+        return t, jnp.minimum(blank + r, s), next_ep + jnp.sum(take), slot_ep, state, pstate, act_keys, totals, results
 
-    def cond(c):
-        t, _, slot_ep, *_ = c
-        return (t < max_steps) & jnp.any(slot_ep < n_queue)
-
-    def body(c):
-        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+    def step(c):
+        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
         action, pstate, stats = _act(policy, state, pstate, act_keys, None)
         running = ~state.done
         totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
@@ -215,11 +220,20 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
         results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
         slot_ep = jnp.where(ended, n_queue, slot_ep)
-        c = (t + 1, next_ep, slot_ep, state, pstate, act_keys, totals, results)
-        c = jax.lax.cond(jnp.any(slot_ep == n_queue) & (next_ep < n_valid), refill, lambda c: c, c)
-        t, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        return t, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results
+        return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
 
-    c = (jnp.zeros((), jnp.int32), next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results)
+    def cond(c):
+        t, blank, next_ep, slot_ep, *_ = c
+        return (t < max_steps) & (jnp.any(slot_ep < n_queue) | (next_ep < n_valid))
+
+    def body(c):
+        blank, next_ep, slot_ep = c[1:4]
+        c = jax.lax.cond((blank < s) | (jnp.any(slot_ep == n_queue) & (next_ep < n_valid)), refill, lambda c: c, c)
+        c = jax.lax.cond(c[1] >= s, step, lambda c: c, c)  # control steps once every slot is set
+        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results
+
+    c = (jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32),
+         *constrain((slot_ep, state, pstate, act_keys, totals)), results)
     c = jax.lax.while_loop(cond, body, c)
     return c[-1], c[0]

@@ -102,3 +102,22 @@ def test_the_loop_bound_stops_the_queue(case):
         keys, task_ids, jnp.int32(N_EPISODES))
     assert int(loop_steps) == 5
     assert int((out.steps > 0).sum()) < N_EPISODES
+
+
+class _MarkedEnv(_Env):
+    """The stand-in env with a primitive (population_count) that only its reset uses, to
+    count the resets a traced program holds."""
+
+    def reset(self, key, task_id):
+        state = super().reset(key, task_id)
+        return state.replace(length=state.length + 0 * jax.lax.population_count(task_id))
+
+
+def test_the_program_holds_one_env_reset(case):
+    """The first fill and every refill go through the same reset: one reset in the program
+    (the env reset is a large share of the compile), for a batch of slots as for one."""
+    keys, task_ids, *_ = case
+    for slots in (1, 4, 12):
+        text = str(jax.make_jaxpr(lambda k, t, n: rollout.run_queue(_MarkedEnv(), _policy(), k, t, n, slots, 100))(
+            keys, task_ids, jnp.int32(N_EPISODES)))
+        assert text.count("population_count") == 1, slots
