@@ -124,7 +124,7 @@ def _plot(by_phase: list[dict], by_metric: list[dict], path: str) -> None:
     a.bar(x - 0.2, [ACTION_DIM / r["tpa_retrieval"] for r in by_phase], 0.4, label="retrieval drafts (then drafter)")
     a.bar(x + 0.2, [ACTION_DIM / r["tpa_drafter"] for r in by_phase], 0.4, label="drafter trees")
     a.set_xticks(x, [f"{r['group']}\n{r['share']:.0%}\nwhole {r['retrieval_whole']:.0%}" for r in by_phase],
-                 fontsize=7)
+                 fontsize=7, rotation=30)
     a.set_ylabel("tokens per target pass")
     a.set_title("by expert phase (share of steps; retrieval accepted whole)", fontsize=9)
     a.legend(fontsize=8)
