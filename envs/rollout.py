@@ -200,8 +200,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         rows = jnp.where(blank < s, blank + lanes, free)  # [r] slot rows; >= s: none
         take = (rows < s) & (eps < n_valid)
         rows = jnp.where(take | (blank < s), rows, s)
-        s2, p2, k2 = _start(env, policy, keys[jnp.minimum(eps, n_queue - 1)], task_ids[jnp.minimum(eps, n_queue - 1)],
-                            seed)
+        idx = jnp.minimum(eps, n_queue - 1)
+        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed)
         s2 = s2.replace(done=s2.done | ~take)
         state = _rows_set(rows, s2, state, s)
         pstate = _rows_set(rows, p2, pstate, s, shared_too=blank == 0)

@@ -31,7 +31,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, retrieval
+from heisd_jax import checkpoint, methods, results_io, retrieval, vla_policy
 from heisd_jax.offline import boundary
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
@@ -60,7 +60,6 @@ def main(argv):
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         settings = methods.check_settings("heisd", settings)
         env = TabletopEnv(task_list, methods.env_config("heisd", FLAGS.checkpoint))
-        learner = methods.make_policy("ar", env, checkpoint=FLAGS.checkpoint)
         params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
         dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg, params)
         store, key_spec, meta = retrieval.load(FLAGS.datastore, tok, checkpoint.fingerprint(params))
@@ -68,8 +67,8 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     hcfg = methods.hybrid_config("heisd", settings, methods.load_calibration(FLAGS.datastore, meta))
     hcfg.check_fits(cfg)
-    s = methods.HeiSDSettings(**settings)
-    cfg, params, dparams = methods.in_dtype(cfg, s.dtype, params, dparams, matmul_precision=s.matmul_precision)
+    cfg, params, dparams = methods.in_numerics(cfg, methods.HeiSDSettings(**settings), params, dparams)
+    learner = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
     n = FLAGS.envs
     tids = np.arange(n) % len(task_list)
@@ -79,9 +78,7 @@ def main(argv):
     run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t,
                                                           FLAGS.steps, teacher=expert.observer(env), beta=0.0))
     final, traj = jax.device_get(run(learner.params, keys, jnp.asarray(tids, jnp.int32)))
-    # final.step counts the steps an episode ran, capped by the recording's length.
-    ran = np.minimum(np.asarray(final.step), FLAGS.steps)
-    steps, phase = boundary.closed_loop_steps(traj, ran, np.asarray(env.instructions)[tids],
+    steps, phase = boundary.closed_loop_steps(traj, np.asarray(final.step), np.asarray(env.instructions)[tids],
                                               np.asarray(env.global_index)[tids], key_spec.history)
     print(f"recorded {n} envs x {FLAGS.steps} steps: {len(phase)} running steps in {time.perf_counter() - t0:.0f}s",
           flush=True)

@@ -24,8 +24,8 @@ Calibrate on an otherwise idle device: a table measured while other programs sha
 is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and
 it stays cached; delete the file (or pass another cache directory) to measure again.
 
-A table is tied to its key (device, platform, jax version, model fingerprints, dtype, precision, batch
-size, options, number of candidates). `load_cached` reads the cached file only if its key
+A table is tied to its key (device, platform, jax version, model fingerprints, dtype, matmul
+precision, batch size, options, number of candidates). `load_cached` reads the cached file only if its key
 equals the current one. Measuring is always asked for explicitly (`load_or_calibrate(...,
 measure=True)`, the entry points' --calibrate_costs): a method never spends minutes
 calibrating behind a user's back.
@@ -68,7 +68,8 @@ def table_key(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int)
     dev = jax.devices()[0]
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "target": checkpoint.fingerprint(params["target"]), "drafter": checkpoint.fingerprint(params["drafter"]),
-            "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "batch": int(batch), "n_candidates": hcfg.n_candidates,
+            "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "batch": int(batch),
+            "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}
 

@@ -51,6 +51,11 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | No
     return (cfg, *(jax.tree.map(cast, p) for p in params))
 
 
+def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", *params):
+    """`in_dtype` at a method's settings: their dtype and matmul precision."""
+    return in_dtype(cfg, settings.dtype, *params, matmul_precision=settings.matmul_precision)
+
+
 def _setting(default, help: str, choices: tuple[str, ...] | None = None):
     """A settings field: its default, its help line (the flag's), its valid values if a choice."""
     return dataclasses.field(default=default, metadata={"help": help, "choices": choices})
@@ -263,8 +268,7 @@ def _build_expert(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
 
 def _build_ar(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
     params, cfg, tok = _load_target(env, paths["checkpoint"])
-    s = ARSettings(**given)
-    cfg, params = in_dtype(cfg, s.dtype, params, matmul_precision=s.matmul_precision)
+    cfg, params = in_numerics(cfg, ARSettings(**given), params)
     return vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
 
@@ -273,8 +277,7 @@ def _build_drafter(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
     params, cfg, tok = _load_target(env, paths["checkpoint"])
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
-    s = DrafterSettings(**given)
-    cfg, params, dparams = in_dtype(cfg, s.dtype, params, dparams, matmul_precision=s.matmul_precision)
+    cfg, params, dparams = in_numerics(cfg, DrafterSettings(**given), params, dparams)
     return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
                                       vla_policy.drafter_sd(spec), spec=spec)
 
@@ -292,8 +295,7 @@ def _build_hybrid(name: str):
                              f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
         hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
         hcfg.check_fits(cfg)
-        s = get(name).settings(**given)
-        cfg, params, dparams = in_dtype(cfg, s.dtype, params, dparams, matmul_precision=s.matmul_precision)
+        cfg, params, dparams = in_numerics(cfg, get(name).settings(**given), params, dparams)
         all_params = {"target": params, "drafter": dparams, "store": store}
         table = None
         if hcfg.budget.mode == "auto":
