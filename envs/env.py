@@ -95,6 +95,13 @@ class TabletopEnv:
         g = jnp.asarray(self.global_index[task_ids.ravel()])
         return jax.vmap(lambda t, e: initial_state_key(t, e, split))(g, jnp.asarray(episodes.ravel()))
 
+    def cycling_eval_starts(self, n: int) -> tuple[np.ndarray, jax.Array]:
+        """n envs cycling over the tasks, then over their fixed evaluation initial states:
+        task ids [n] int32 and initial-state keys [n, 2]."""
+        i = np.arange(n)
+        tids = (i % len(self.tasks)).astype(np.int32)
+        return tids, self.initial_state_keys(tids, (i // len(self.tasks)) % tasks_lib.N_EVAL_INIT_STATES, split="eval")
+
     # ---- reset --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, task_id: jnp.ndarray) -> EnvState:
         task_id = jnp.asarray(task_id, jnp.int32)

@@ -88,10 +88,7 @@ class ReplayState:
 def record(env: TabletopEnv, n_envs: int, n_steps: int):
     """[T, B] replay states and AR's recorded actions [T, B, 7] and done flags [T, B]."""
     policy = methods.make_policy(FLAGS.record_method, env, checkpoint=FLAGS.checkpoint)
-    n_tasks = len(env.tasks)
-    tids = np.arange(n_envs) % n_tasks
-    eps = (np.arange(n_envs) // n_tasks) % tasks_lib.N_EVAL_INIT_STATES
-    keys = env.initial_state_keys(tids, eps, split="eval")
+    tids, keys = env.cycling_eval_starts(n_envs)
     fn = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p),
                                                           k, t, n_steps))
     final, traj = fn(policy.params, keys, jnp.asarray(tids, jnp.int32))

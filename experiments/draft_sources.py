@@ -71,9 +71,7 @@ def main(argv):
     learner = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
     n = FLAGS.envs
-    tids = np.arange(n) % len(task_list)
-    eps = (np.arange(n) // len(task_list)) % tasks_lib.N_EVAL_INIT_STATES
-    keys = env.initial_state_keys(tids, eps, split="eval")
+    tids, keys = env.cycling_eval_starts(n)
     t0 = time.perf_counter()
     run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t,
                                                           FLAGS.steps, teacher=expert.observer(env), beta=0.0))

@@ -102,9 +102,7 @@ def main(argv):
     meta = policy.meta
     hcfg = meta.get("hcfg")
     fns = component_fns(meta, FLAGS.method)
-    n_tasks = len(env.tasks)
-    tids = np.arange(FLAGS.batch) % n_tasks
-    keys = env.initial_state_keys(tids, (np.arange(FLAGS.batch) // n_tasks) % tasks_lib.N_EVAL_INIT_STATES)
+    tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params
     pstate = policy.init(params, states)

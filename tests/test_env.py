@@ -56,6 +56,15 @@ def test_eval_and_train_initial_states_differ(compiled):
     assert not np.array_equal(ev, tr)
 
 
+def test_cycling_eval_starts_go_over_tasks_then_evaluation_states(compiled):
+    env = compiled.env
+    n_tasks = len(env.tasks)
+    tids, keys = env.cycling_eval_starts(2 * n_tasks + 1)
+    assert tids.dtype == np.int32 and tids.tolist() == [*range(n_tasks)] * 2 + [0]
+    np.testing.assert_array_equal(keys[n_tasks + 1], env.initial_state_keys([1], [1], split="eval")[0])
+    np.testing.assert_array_equal(keys[-1], env.initial_state_keys([0], [2], split="eval")[0])
+
+
 def test_step_is_deterministic(compiled):
     s = compiled.start([3, 17])
     a = jnp.tile(jnp.array([0.5, -0.3, 0.2, 0.0, 0.1, -0.2, -1.0]), (BATCH, 1))
