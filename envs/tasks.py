@@ -230,12 +230,20 @@ def compile_tasks(tasks: tuple[Task, ...]) -> TaskTable:
 
 
 def parse_suite_weights(items: Sequence[str]) -> dict[str, int]:
-    """Per-suite multipliers of the episodes collected per task, from "SUITE:N" entries
-    (suites not named: 1); ValueError naming the bad entry and the valid suites."""
+    """Multipliers of the episodes collected per task, from "SUITE:N" or "TASK:N" entries: a
+    suite's weight applies to each of its tasks, a task's own weight overrides it, anything not
+    named gets 1 (`episode_weight`). ValueError naming the bad entry and the valid suites."""
     out = {}
+    task_names = {t.name for t in ALL_TASKS}
     for item in items:
-        suite, sep, n = str(item).partition(":")
-        if not sep or suite not in SUITES or not n.strip().isdigit() or int(n) < 1:
-            raise ValueError(f"bad suite weight {item!r}: expected SUITE:N with N >= 1 and SUITE one of {list(SUITES)}")
-        out[suite] = int(n)
+        name, sep, n = str(item).partition(":")
+        if not sep or (name not in SUITES and name not in task_names) or not n.strip().isdigit() or int(n) < 1:
+            raise ValueError(f"bad suite weight {item!r}: expected SUITE:N or TASK:N with N >= 1, SUITE one of "
+                             f"{list(SUITES)} and TASK a task name of those suites")
+        out[name] = int(n)
     return out
+
+
+def episode_weight(task: Task, weights: dict[str, int]) -> int:
+    """How many times the per-task episode count `task` gets under `parse_suite_weights`' weights."""
+    return weights.get(task.name, weights.get(task.suite, 1))

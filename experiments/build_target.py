@@ -41,8 +41,9 @@ flags.DEFINE_integer("demo_episodes", 75, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
-flags.DEFINE_list("suite_weights", [], "SUITE:N,...: the tasks of these suites get N times the episodes per task in "
-                  "the demonstrations and every DAgger round (e.g. spatial:2,long:2); others 1.")
+flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
+                  "the episodes per task in the demonstrations and every DAgger round (e.g. spatial:2,long:2); a "
+                  "task's own weight overrides its suite's; others 1.")
 flags.DEFINE_list("beta", ["0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")

@@ -29,8 +29,9 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes_per_task", 50, "Training episodes attempted per task.")
-flags.DEFINE_list("suite_weights", [], "SUITE:N,...: the tasks of these suites get N times --episodes_per_task "
-                  "(e.g. spatial:2,long:2 for the suites a policy fails most); others 1.")
+flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
+                  "--episodes_per_task (e.g. spatial:2,long:2 for the suites a policy fails most); a task's own "
+                  "weight overrides its suite's; others 1.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
 flags.DEFINE_bool("wrist", True, "Also render the wrist camera (tiled right of the agent view).")
@@ -92,28 +93,28 @@ def main(argv):
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
     pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
-             for e in range(FLAGS.episodes_per_task * weights.get(task.suite, 1))]
-    n_steps = int(max(t.max_steps for t in task_list))
+             for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
+    batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs)
     if dagger:
         # The policy's parameters are an argument, not constants baked into the program.
-        run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t, n_steps,
-                                                              exec_noise=FLAGS.action_noise, teacher=policy,
-                                                              beta=FLAGS.beta))
-        record = lambda k, t: run(learner.params, k, t)  # noqa: E731
+        run = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t, n,
+                                                                 exec_noise=FLAGS.action_noise, teacher=policy,
+                                                                 beta=FLAGS.beta), static_argnums=3)
+        record = lambda k, t, n: run(learner.params, k, t, n)  # noqa: E731
     else:
-        record = jax.jit(lambda k, t: rollout.record_episodes(env, policy, k, t, n_steps, exec_noise=FLAGS.action_noise))
+        record = jax.jit(lambda k, t, n: rollout.record_episodes(env, policy, k, t, n, exec_noise=FLAGS.action_noise),
+                         static_argnums=2)
     agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
     kept = 0
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
                       TextColumn("kept {task.fields[kept]}"), TimeRemainingColumn()) as bar:
             job = bar.add_task("collecting", total=len(pairs), kept=0)
-            for start in range(0, len(pairs), FLAGS.num_envs):
-                chunk = pairs[start: start + FLAGS.num_envs]
-                pad = chunk + [chunk[-1]] * (FLAGS.num_envs - len(chunk))
+            for n_steps, size, chunk in batches:
+                pad = chunk + [chunk[-1]] * (size - len(chunk))
                 tids, eps = np.array(pad).T
                 keys = env.initial_state_keys(tids, eps, split="train")
-                final, traj = jax.device_get(record(keys, jnp.asarray(tids, jnp.int32)))
+                final, traj = jax.device_get(record(keys, jnp.asarray(tids, jnp.int32), n_steps))
                 steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
                 for i, (t, e) in enumerate(chunk):
                     if not (final.success[i] or dagger):
@@ -144,6 +145,25 @@ def main(argv):
               f"-> {path}")
     else:
         print(f"kept {kept}/{len(pairs)} successful episodes ({kept / len(pairs):.1%}) -> {path}")
+
+
+def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs: int
+                    ) -> list[tuple[int, int, list[tuple[int, int]]]]:
+    """Splits (task index, episode) pairs into batches of at most `num_envs` that each hold
+    tasks of one time limit: [(n_steps, batch size, pairs)]. A batch runs to its longest task's
+    limit, so a 220-step task batched with 420-step ones would be simulated (and its frames
+    recorded) for nearly twice its own limit. Within one limit the batches share one size, as
+    small as the batch count allows (fewer padded slots than batches, not up to `num_envs`),
+    so each limit compiles one program."""
+    by_limit: dict[int, list[tuple[int, int]]] = {}
+    for t, e in pairs:
+        by_limit.setdefault(int(max_steps[t]), []).append((t, e))
+    out = []
+    for limit, group in sorted(by_limit.items()):
+        n_batches = -(-len(group) // num_envs)
+        size = -(-len(group) // n_batches)
+        out += [(limit, size, group[i: i + size]) for i in range(0, len(group), size)]
+    return out
 
 
 if __name__ == "__main__":

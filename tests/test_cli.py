@@ -73,3 +73,21 @@ def test_suite_weights_parse_and_name_the_bad_entry():
     for bad in ("spatial", "spatial:0", "spatial:x", "nope:2"):
         with pytest.raises(ValueError, match=f"bad suite weight '{bad}'.*'spatial', 'object', 'goal', 'long'"):
             tasks.parse_suite_weights([bad])
+    weights = tasks.parse_suite_weights(["spatial:3", "far_plate_block_basket:5"])
+    by_name = {t.name: t for t in tasks.ALL_TASKS}
+    assert tasks.episode_weight(by_name["far_plate_block_basket"], weights) == 5  # the task's own weight wins
+    assert tasks.episode_weight(by_name["left_block_plate"], weights) == 3  # its suite's
+    assert tasks.episode_weight(by_name["pick_red_block"], weights) == 1  # not named
+
+
+def test_collection_batches_hold_one_time_limit_each():
+    from experiments.collect_demos import horizon_batches
+
+    limits = [220, 420, 220]
+    pairs = [(t, e) for t in range(3) for e in range(5)]
+    batches = horizon_batches(pairs, limits, num_envs=4)
+    assert sorted(p for _, _, chunk in batches for p in chunk) == sorted(pairs)  # every episode once
+    for n_steps, size, chunk in batches:
+        assert {limits[t] for t, _ in chunk} == {n_steps} and len(chunk) <= size <= 4
+    # 10 episodes of limit 220 in 3 batches of 4 (not 4 + 4 + 2 padded to 4): sizes equal per limit.
+    assert [(n, s, len(c)) for n, s, c in batches] == [(220, 4, 4), (220, 4, 4), (220, 4, 2), (420, 3, 3), (420, 3, 2)]
