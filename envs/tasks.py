@@ -244,6 +244,23 @@ def parse_suite_weights(items: Sequence[str]) -> dict[str, int]:
     return out
 
 
+def failure_weights(success_rate: dict[str, float], max_weight: int = 4) -> list[str]:
+    """"TASK:N" weights (for `parse_suite_weights`) that give each task episodes in proportion to
+    how often a policy failed it: N = 1 + round(10 x failure rate), at most `max_weight`; tasks
+    at N = 1 are left out. A task failed 1 time in 3 gets 4x, 1 in 10 gets 2x. The next DAgger
+    round then visits most the states where the policy goes wrong. ValueError for a name that is
+    no task or a rate outside [0, 1]."""
+    names = {t.name for t in ALL_TASKS}
+    out = []
+    for name, rate in success_rate.items():
+        if name not in names or not 0.0 <= rate <= 1.0:
+            raise ValueError(f"bad task success rate {name!r}: {rate!r} (expected a task name and a rate in [0, 1])")
+        n = min(max_weight, 1 + int(round(10 * (1.0 - rate))))
+        if n > 1:
+            out.append(f"{name}:{n}")
+    return out
+
+
 def episode_weight(task: Task, weights: dict[str, int]) -> int:
     """How many times the per-task episode count `task` gets under `parse_suite_weights`' weights."""
     return weights.get(task.name, weights.get(task.suite, 1))

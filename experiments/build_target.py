@@ -44,6 +44,9 @@ flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger ro
 flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
                   "the episodes per task in the demonstrations and every DAgger round (e.g. spatial:2,long:2); a "
                   "task's own weight overrides its suite's; others 1.")
+flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
+                    "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
+                    "up to 4x); a task named in --suite_weights keeps the weight given there.")
 flags.DEFINE_list("beta", ["0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -256,6 +259,21 @@ def install(w: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+def _failure_weights(path: str) -> list[str]:
+    """`envs.tasks.failure_weights` of the per-task success rates in an evaluation's results
+    JSON; ValueError naming the file when it is missing or holds no per-task summary."""
+    from envs import tasks as tasks_lib  # noqa: PLC0415
+
+    try:
+        with open(path) as f:
+            summary = json.load(f)["summary"]["tasks"]
+        rates = {name: float(row["success_rate"]) for name, row in summary.items()}
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"--weights_from {path}: not an evaluation's results JSON with per-task success "
+                         f"(summary.tasks.*.success_rate): {e}") from None
+    return tasks_lib.failure_weights(rates)
+
+
 def main(argv):
     del argv
     bad = sorted(set(FLAGS.skip) - set(SKIPPABLE))
@@ -278,6 +296,8 @@ def main(argv):
 
     try:
         tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+        if FLAGS.weights_from:  # resolved to explicit entries, so build.json records the weights themselves
+            FLAGS.suite_weights = _failure_weights(FLAGS.weights_from) + list(FLAGS.suite_weights)
         tasks_lib.parse_suite_weights(FLAGS.suite_weights)
     except ValueError as e:
         raise app.UsageError(str(e)) from e

@@ -113,3 +113,40 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
         unknown = by_module[module] - set(out.split())
         assert not unknown, f"experiments.{module} does not define {sorted(unknown)}"
     assert "suite_weights" in by_module["collect_demos"] and "suite_weights" not in by_module["evaluate"]
+
+
+def test_failure_weights_follow_the_failure_rate():
+    from envs import tasks
+
+    rates = {"far_plate_block_basket": 0.60, "near_plate_cylinder_basket": 0.82, "push_green_block_zone": 0.86,
+             "left_block_plate": 0.96, "pick_red_block": 1.0}
+    # 1 + round(10 x failure rate), capped at 4; tasks that would get 1x are left out.
+    assert tasks.failure_weights(rates) == ["far_plate_block_basket:4", "near_plate_cylinder_basket:3",
+                                            "push_green_block_zone:2"]
+    assert tasks.failure_weights(rates, max_weight=2)[0] == "far_plate_block_basket:2"
+    assert tasks.parse_suite_weights(tasks.failure_weights(rates))  # valid weights
+    for bad in ({"nope": 0.5}, {"pick_red_block": 1.5}):
+        with pytest.raises(ValueError, match="bad task success rate"):
+            tasks.failure_weights(bad)
+
+
+def test_build_target_weights_from_an_evaluation(tmp_path):
+    """--weights_from turns an evaluation's per-task failures into the collections' weights;
+    an explicit --suite_weights entry for a task keeps its own weight; a file that is no
+    evaluation is refused before anything runs."""
+    root = Path(__file__).resolve().parents[1]
+    start = tmp_path / "start"
+    (start / "0").mkdir(parents=True)
+    ev = tmp_path / "eval.json"
+    ev.write_text(json.dumps({"summary": {"tasks": {"left_block_plate": {"success_rate": 0.6},
+                                                    "pick_red_block": {"success_rate": 0.9}}}}))
+    base = [sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
+            f"--start={start}", "--steps=0", "--rounds=1", "--tasks=pick_red_block,left_block_plate"]
+    r = subprocess.run(base + [f"--weights_from={ev}", "--suite_weights=pick_red_block:3"],
+                       capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    dagger = next(line for line in r.stdout.splitlines() if line.startswith("dagger1"))
+    assert "--suite_weights=left_block_plate:4,pick_red_block:2,pick_red_block:3" in dagger
+    ev.write_text("{}")
+    r = subprocess.run(base + [f"--weights_from={ev}"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode != 0 and "not an evaluation's results JSON" in r.stderr, r.stderr[-3000:]
