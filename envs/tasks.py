@@ -147,6 +147,7 @@ SUITES: dict[str, tuple[Task, ...]] = {
     "long": tuple(_long()),
 }
 ALL_TASKS: tuple[Task, ...] = tuple(t for s in SUITES.values() for t in s)
+TASK_NAMES: frozenset[str] = frozenset(t.name for t in ALL_TASKS)
 
 
 def get_tasks(suites: str | list[str] = "all", tasks: list[str] | None = None) -> tuple[Task, ...]:
@@ -234,10 +235,9 @@ def parse_suite_weights(items: Sequence[str]) -> dict[str, int]:
     suite's weight applies to each of its tasks, a task's own weight overrides it, anything not
     named gets 1 (`episode_weight`). ValueError naming the bad entry and the valid suites."""
     out = {}
-    task_names = {t.name for t in ALL_TASKS}
     for item in items:
         name, sep, n = str(item).partition(":")
-        if not sep or (name not in SUITES and name not in task_names) or not n.strip().isdigit() or int(n) < 1:
+        if not sep or (name not in SUITES and name not in TASK_NAMES) or not n.strip().isdigit() or int(n) < 1:
             raise ValueError(f"bad suite weight {item!r}: expected SUITE:N or TASK:N with N >= 1, SUITE one of "
                              f"{list(SUITES)} and TASK a task name of those suites")
         out[name] = int(n)
@@ -250,10 +250,9 @@ def failure_weights(success_rate: dict[str, float], max_weight: int = 4) -> list
     at N = 1 are left out. A task failed 1 time in 3 gets 4x, 1 in 10 gets 2x. The next DAgger
     round then visits most the states where the policy goes wrong. ValueError for a name that is
     no task or a rate outside [0, 1]."""
-    names = {t.name for t in ALL_TASKS}
     out = []
     for name, rate in success_rate.items():
-        if name not in names or not 0.0 <= rate <= 1.0:
+        if name not in TASK_NAMES or not 0.0 <= rate <= 1.0:
             raise ValueError(f"bad task success rate {name!r}: {rate!r} (expected a task name and a rate in [0, 1])")
         n = min(max_weight, 1 + int(round(10 * (1.0 - rate))))
         if n > 1:
