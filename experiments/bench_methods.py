@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
+import sys
 import time
 from pathlib import Path
 
@@ -255,7 +257,8 @@ def main(argv):
 
 
 def write(rows, query_ms):
-    results_io.write_json_atomic(FLAGS.out, {"device": jax.devices()[0].device_kind, "steps": FLAGS.steps,
+    command = "python -m experiments.bench_methods " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+    results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(command), "steps": FLAGS.steps,
                                              "record_method": FLAGS.record_method, "suites": FLAGS.suites,
                                              "query_ms": query_ms, "rows": rows})
 
