@@ -19,6 +19,8 @@ Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, -
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from absl import flags
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
@@ -27,8 +29,8 @@ import numpy as np
 
 from envs import language, tasks as tasks_lib
 from envs.env import TabletopEnv
-from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint
-from heisd_jax import acceptance, checkpoint, methods
+from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint, out
+from heisd_jax import acceptance, checkpoint, methods, results_io
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -60,34 +62,55 @@ def simulate_repeat_skip(bins: np.ndarray, live: np.ndarray, n_confirm: int, k_s
     return skipped / max(steps, 1), outside / max(skipped, 1)
 
 
+def measure(bins: np.ndarray, live: np.ndarray) -> dict:
+    """The figures the module doc lists, from AR's action bins [T, B, 7] and live [T, B]."""
+    pair = live[1:] & live[:-1]  # [T-1, B]
+    diff = np.abs(bins[1:] - bins[:-1])[pair]  # [n, 7]
+    rep = whole(bins[:-1], bins[1:]) & pair  # [T-1, B]
+    after = {}
+    for k in (1, 2, 3):
+        cond = pair[k:].copy()
+        for j in range(1, k + 1):
+            cond &= rep[k - j: len(rep) - j]
+        after[k] = {"accepted_whole": float(rep[k:][cond].mean()) if cond.any() else None, "steps": int(cond.sum())}
+    skip = []
+    for n_confirm in (1, 2, 3):
+        for k_skip in (1, 3, 5):
+            share, out = simulate_repeat_skip(bins, live, n_confirm, k_skip)
+            skip.append({"n_confirm": n_confirm, "k_skip": k_skip, "skipped": share, "outside_tolerance": out})
+    return {"pairs": int(diff.shape[0]), "bin_distance_mean": diff.mean(0).tolist(),
+            "bin_distance_median": np.median(diff, 0).tolist(),
+            "within_bins": {r: {"per_dim": (diff <= r).mean(0).tolist(), "all": float((diff <= r).all(-1).mean())}
+                            for r in (0, 3, 9, 15)},
+            "previous_accepted_whole": float(rep[pair].mean()), "after_whole_repeats": after,
+            "repeat_skip": skip}
+
+
 def main(argv):
     del argv
     env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
     _, actions, done = bench_methods.record(env, FLAGS.record_envs, FLAGS.steps)
     _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     bins = np.asarray(tok.to_bins(np.asarray(actions))).astype(np.int32)  # [T, B, 7]
-    live = ~np.asarray(done)
-    pair = live[1:] & live[:-1]  # [T-1, B]
-    diff = np.abs(bins[1:] - bins[:-1])[pair]  # [n, 7]
-    print(f"{FLAGS.record_envs} envs x {FLAGS.steps} steps of AR ({FLAGS.suites}): {diff.shape[0]} consecutive pairs")
+    m = measure(bins, ~np.asarray(done))
+    print(f"{FLAGS.record_envs} envs x {FLAGS.steps} steps of AR ({FLAGS.suites}): {m['pairs']} consecutive pairs")
     print("bin distance to the previous action, per dimension (dx dy dz droll dpitch dyaw gripper):")
-    print(f"  mean   {np.round(diff.mean(0), 2)}")
-    print(f"  median {np.median(diff, 0)}")
-    for r in (0, 3, 9, 15):
-        print(f"  within {r:2d} bins: {np.round((diff <= r).mean(0), 3)}, all 7: {(diff <= r).all(-1).mean():.3f}")
-    rep = whole(bins[:-1], bins[1:]) & pair  # [T-1, B]
-    print(f"previous action accepted whole (seq_relaxed, r_max 15, r_seq 42): {rep[pair].mean():.3f}")
-    for k in (1, 2, 3):
-        cond = pair[k:].copy()
-        for j in range(1, k + 1):
-            cond &= rep[k - j: len(rep) - j]
-        print(f"  after {k} whole repeats in a row: {rep[k:][cond].mean():.3f} ({cond.sum()} steps)")
+    print(f"  mean   {np.round(m['bin_distance_mean'], 2)}")
+    print(f"  median {np.asarray(m['bin_distance_median'])}")
+    for r, w in m["within_bins"].items():
+        print(f"  within {r:2d} bins: {np.round(w['per_dim'], 3)}, all 7: {w['all']:.3f}")
+    print(f"previous action accepted whole (seq_relaxed, r_max 15, r_seq 42): {m['previous_accepted_whole']:.3f}")
+    for k, a in m["after_whole_repeats"].items():
+        print(f"  after {k} whole repeats in a row: {a['accepted_whole']} ({a['steps']} steps)")
     print("repeat the last verified action without a target pass (host simulation):")
-    for n_confirm in (1, 2, 3):
-        for k_skip in (1, 3, 5):
-            share, out = simulate_repeat_skip(bins, live, n_confirm, k_skip)
-            print(f"  n_confirm {n_confirm} k_skip {k_skip}: {share:.3f} of steps skipped, "
-                  f"{out:.3f} of them outside the tolerance")
+    for r in m["repeat_skip"]:
+        print(f"  n_confirm {r['n_confirm']} k_skip {r['k_skip']}: {r['skipped']:.3f} of steps skipped, "
+              f"{r['outside_tolerance']:.3f} of them outside the tolerance")
+    if FLAGS.out:
+        command = "python -m experiments.action_repeats " + " ".join(
+            f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "record_envs", "steps"))
+        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(command), **m})
 
 
 if __name__ == "__main__":
