@@ -62,22 +62,30 @@ def seq_relaxed_length(draft_bins: jnp.ndarray, target_bins: jnp.ndarray, cfg: S
     return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)
 
 
+SKIP_SOURCES = ("retrieval", "recent")  # what a skipped step executes: the datastore's top action, or the last one
+
+
 @dataclasses.dataclass(frozen=True)
 class SkipConfig:
     enabled: bool = True
-    eps: float = 0.05  # nearest-key squared distance under which retrieval is trusted
-    r_agree: int = 6  # the top `n_agree` candidates agree within this many bins on every token
+    source: str = "retrieval"  # "retrieval": the datastore's top candidate (HEISD.md); "recent": repeat the last action
+    eps: float = 0.05  # retrieval: nearest-key squared distance under which retrieval is trusted
+    r_agree: int = 6  # retrieval: the top `n_agree` candidates agree within this many bins on every token
     n_agree: int = 3
+    n_confirm: int = 2  # recent: the last this many verified steps each repeated their previous action
     k_skip: int = 3  # at most this many consecutive skipped target passes
 
     def __post_init__(self):
-        if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.k_skip < 0:
-            raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, k_skip >= 0: {self}")
+        if self.source not in SKIP_SOURCES:
+            raise ValueError(f"unknown skip source {self.source!r}; valid: {', '.join(SKIP_SOURCES)}")
+        if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.n_confirm < 1 or self.k_skip < 0:
+            raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, n_confirm >= 1, k_skip >= 0: {self}")
 
 
 def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand_bins: jnp.ndarray,
              valid: jnp.ndarray, last_whole: jnp.ndarray, skips: jnp.ndarray) -> jnp.ndarray:
-    """Whether a row executes its top retrieved action without a target pass. dist [B, N]
+    """Verify-skip with source "retrieval" (HEISD.md section 5): whether a row executes its top
+    retrieved action without a target pass. dist [B, N]
     squared distances, cand_bins [B, N, 7], valid [B, N], last_whole [B] (the last verified
     retrieval action was accepted whole), skips [B] consecutive skips so far."""
     if not cfg.enabled or cfg.k_skip == 0:
@@ -85,6 +93,18 @@ def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand
     top = cand_bins[:, : cfg.n_agree]
     agree = jnp.all(jnp.abs(top - top[:, :1]) <= cfg.r_agree, axis=(1, 2)) & jnp.all(valid[:, : cfg.n_agree], 1)
     return in_retrieval & (dist[:, 0] <= cfg.eps) & agree & last_whole & (skips < cfg.k_skip)
+
+
+def may_repeat(cfg: SkipConfig, in_retrieval: jnp.ndarray, last_valid: jnp.ndarray, repeats: jnp.ndarray,
+               skips: jnp.ndarray) -> jnp.ndarray:
+    """Verify-skip with source "recent": whether a row executes its last action again without a
+    target pass. last_valid [B] (the row has a last action), repeats [B] the number of verified
+    steps in a row whose action repeated the one before it (it was accepted whole as a
+    candidate), skips [B] consecutive skips so far. A skipped step keeps `repeats`, so each
+    verification after `k_skip` skips must repeat again for the skipping to go on."""
+    if not cfg.enabled or cfg.k_skip == 0:
+        return jnp.zeros(in_retrieval.shape, bool)
+    return in_retrieval & last_valid & (repeats >= cfg.n_confirm) & (skips < cfg.k_skip)
 
 
 def prefix_length(rule: str, relax_bins: int, seq: SeqRelaxedConfig, draft_bins: jnp.ndarray,

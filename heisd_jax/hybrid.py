@@ -8,13 +8,16 @@ Per env and control step (`step`):
      (`heisd_jax.kinematics`).
   2. retrieval: the env's key (recent actions, proprio) queries the datastore for
      `n_candidates` whole actions (exact kNN on device, `heisd_jax.retrieval`; 0: no query,
-     the recent actions alone, and no verify-skip); the env's own
+     the recent actions alone); the env's own
      last `recent_candidates` executed actions join them as further candidates (our design:
      the target's actions repeat from step to step far more often than the datastore's
-     expert actions match them). The datastore's candidates come
-     first, so verify-skip's "top retrieved action" is always the datastore's.
-  3. verify-skip (our rule, `rules.may_skip`): a confident retrieval-mode row executes
-     its top candidate with no target pass, at most `k_skip` times in a row.
+     expert actions match them). The skipped action comes first: the datastore's top one, or
+     with `skip.source="recent"` the env's last action.
+  3. verify-skip: a confident retrieval-mode row executes its first candidate with no target
+     pass, at most `k_skip` times in a row. Source "retrieval" (HEISD.md section 5,
+     `rules.may_skip`): the datastore's top action, when it is near and its neighbours
+     agree; source "recent" (our design, `rules.may_repeat`): the last action again, once
+     `n_confirm` verified steps in a row each accepted their previous action whole.
   4. one target pass for the other rows (`decode`): the prompt prefill, with the candidates'
      tokens appended as parallel chains under a tree mask (`verify="prefill"`: verification
      fused into the prefill, one pass) or checked in a second pass (`verify="separate"`).
@@ -82,9 +85,13 @@ class HybridConfig:
                              f"{self.recent_candidates}")
         if self.n_candidates + self.recent_candidates < 1:
             raise ValueError("nothing to verify: n_candidates (retrieved) + recent_candidates must be >= 1")
-        if self.n_candidates == 0 and self.skip.enabled and self.mode != "drafter":
-            raise ValueError("verify-skip executes the datastore's top candidate: with n_candidates=0 (recent actions "
-                             "only), switch skip off")
+        if self.skip.enabled and self.mode != "drafter":
+            if self.skip.source == "retrieval" and self.n_candidates == 0:
+                raise ValueError("verify-skip from retrieval executes the datastore's top candidate: with "
+                                 "n_candidates=0 (recent actions only), switch skip off or use skip source 'recent'")
+            if self.skip.source == "recent" and self.recent_candidates == 0:
+                raise ValueError("verify-skip from recent actions repeats the last one: it needs recent_candidates "
+                                 ">= 1")
         if not 0 <= self.relax_bins < 256:
             raise ValueError(f"relax_bins must be in 0..255, got {self.relax_bins}")
         if self.max_dist <= 0:
@@ -290,6 +297,7 @@ class HybridState:
     boundary: kinematics.BoundaryState
     skips: jnp.ndarray  # [B] consecutive skipped target passes
     last_whole: jnp.ndarray  # [B] the last verified retrieval action was accepted whole
+    repeats: jnp.ndarray  # [B] verified steps in a row whose action repeated the previous one
     recent: jnp.ndarray  # [B, recent_candidates, 7] token ids of the last executed actions, newest first
     recent_valid: jnp.ndarray  # [B, recent_candidates] (False before the episode has that many)
     budget: budget_lib.BudgetState | None = None  # batch-wide running estimates (budget "auto" only)
@@ -303,6 +311,7 @@ def init_state(batch: int, key_spec: retrieval.KeySpec, hcfg: HybridConfig | Non
     return HybridState(prev_actions=jnp.zeros((batch, key_spec.history, ACTION_DIM), jnp.float32),
                        prev_lin_vel=jnp.zeros((batch, 3), jnp.float32), boundary=kinematics.boundary_init((batch,)),
                        skips=jnp.zeros((batch,), jnp.int32), last_whole=jnp.zeros((batch,), bool),
+                       repeats=jnp.zeros((batch,), jnp.int32),
                        recent=jnp.zeros((batch, r, ACTION_DIM), jnp.int32), recent_valid=jnp.zeros((batch, r), bool),
                        budget=bstate)
 
@@ -355,19 +364,28 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         cand, dist, valid = query(None)
     # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
     in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
-    skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
-                          state.skips)
     if state.recent.shape[1] != hcfg.recent_candidates:
         raise ValueError(f"the state holds {state.recent.shape[1]} recent actions, the config wants "
                          f"{hcfg.recent_candidates}: make it with init_state(batch, key_spec, hcfg)")
-    cand = jnp.concatenate([cand, state.recent], 1)
-    valid = jnp.concatenate([valid, state.recent_valid], 1)
+    if hcfg.skip.source == "recent":  # the last action first: a skipped row executes it again
+        skip = rules.may_repeat(hcfg.skip, in_regime, state.recent_valid[:, 0], state.repeats, state.skips)
+        cand = jnp.concatenate([state.recent, cand], 1)
+        valid = jnp.concatenate([state.recent_valid, valid], 1)
+    else:
+        skip = rules.may_skip(hcfg.skip, in_regime, dist, cand - cfg.first_action_id, valid, state.last_whole,
+                              state.skips)
+        cand = jnp.concatenate([cand, state.recent], 1)
+        valid = jnp.concatenate([valid, state.recent_valid], 1)
     if auto:
         tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, option, obs, cand, valid, use_retrieval, skip)
     else:
         tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
     actions = tok.decode(tokens)
     whole = stats["retrieval_whole"] > 0
+    if hcfg.recent_candidates:
+        repeated = state.recent_valid[:, 0] & jnp.all(tokens == state.recent[:, 0], -1)
+    else:
+        repeated = jnp.zeros((b,), bool)
     history = state.prev_actions
     if history.shape[1]:
         history = jnp.concatenate([history[:, 1:], actions[:, None].astype(jnp.float32)], 1)
@@ -376,6 +394,7 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         prev_lin_vel=kin.lin_vel.astype(jnp.float32), boundary=boundary,
         skips=jnp.where(skip, state.skips + 1, 0),
         last_whole=jnp.where(skip, state.last_whole, whole),
+        repeats=jnp.where(skip, state.repeats, jnp.where(repeated, state.repeats + 1, 0)),
         recent=jnp.concatenate([tokens[:, None], state.recent], 1)[:, : hcfg.recent_candidates],
         recent_valid=jnp.concatenate([jnp.ones((b, 1), bool), state.recent_valid], 1)[:, : hcfg.recent_candidates],
         budget=bstate)

@@ -63,7 +63,8 @@ def _setting(default, help: str, choices: tuple[str, ...] | None = None):
 
 _SPEC, _HYB, _SEQ, _SKIP = spec_decode.SpecConfig, hybrid.HybridConfig, acceptance.SeqRelaxedConfig, acceptance.SkipConfig
 # Module names that fields below shadow (`acceptance`, `budget`) in their class bodies:
-TOKEN_RULES, ACTION_RULES, BUDGETS, _BUDGET = acceptance.TOKEN_RULES, acceptance.ACTION_RULES, budget.BUDGETS, budget.BudgetConfig
+TOKEN_RULES, ACTION_RULES, SKIP_SOURCES = acceptance.TOKEN_RULES, acceptance.ACTION_RULES, acceptance.SKIP_SOURCES
+BUDGETS, _BUDGET = budget.BUDGETS, budget.BudgetConfig
 _DEFAULT_TREES = "/".join("x".join(map(str, t)) for t in budget.DEFAULT_TREES)
 
 
@@ -111,6 +112,10 @@ class RetrievalSettings(DrafterSettings):
                                  "passes (no drafter).", hybrid.CONTINUATION)
     skip: bool = _setting(False, "Verify-skip: a confident retrieval-mode row executes its top candidate without "
                           "a target pass.")
+    skip_source: str = _setting(_SKIP.source, "Verify-skip: what a skipped step executes: the datastore's top "
+                                "candidate (retrieval) or the env's last action again (recent).", SKIP_SOURCES)
+    n_confirm: int = _setting(_SKIP.n_confirm, "Verify-skip from recent actions: the last this many verified "
+                              "steps each accepted their previous action whole.")
     k_skip: int = _setting(_SKIP.k_skip, "Verify-skip: at most this many consecutive skipped target passes.")
     skip_eps: Optional[float] = _setting(None, "Verify-skip: nearest-key squared distance under which retrieval "
                                          f"is trusted (default: the datastore's calibration, else {_SKIP.eps}).")
@@ -209,11 +214,12 @@ def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hy
         for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
             if key not in given:
                 s[key] = value
-    if s["n_candidates"] == 0 and "skip" not in given:  # verify-skip needs the datastore's candidates
-        s["skip"] = False
+    if s["n_candidates"] == 0 and s["skip_source"] == "retrieval" and "skip" not in given:
+        s["skip"] = False  # verify-skip from retrieval needs the datastore's candidates
     cal = calibration or {}
     spec = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
-    skip = acceptance.SkipConfig(enabled=s["skip"], k_skip=s["k_skip"], r_agree=s["r_agree"],
+    skip = acceptance.SkipConfig(enabled=s["skip"], source=s["skip_source"], n_confirm=s["n_confirm"],
+                                 k_skip=s["k_skip"], r_agree=s["r_agree"],
                                  eps=s["skip_eps"] if s["skip_eps"] is not None else cal.get("skip_eps", _SKIP.eps))
     metric = kinematics.MetricConfig(scales=tuple(cal.get("metric_scales", kinematics.MetricConfig().scales)))
     bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if s[k] is not None}}

@@ -51,6 +51,28 @@ def test_verify_skip_is_bounded_and_only_in_retrieval_mode():
     assert not bool(far.any() | disagree.any() | off.any())
 
 
+def test_repeat_skip_needs_confirmed_repeats_and_is_bounded():
+    cfg = acc.SkipConfig(source="recent", n_confirm=2, k_skip=2)
+    in_ret = jnp.array([True, False, True, True, True])
+    last_valid = jnp.array([True, True, False, True, True])
+    repeats = jnp.array([2, 2, 2, 1, 3])
+    skips = jnp.array([0, 0, 0, 0, 2])
+    np.testing.assert_array_equal(np.asarray(acc.may_repeat(cfg, in_ret, last_valid, repeats, skips)),
+                                  [True, False, False, False, False])
+    s, n_skips = jnp.zeros(1, jnp.int32), []
+    for _ in range(10):
+        k = acc.may_repeat(cfg, jnp.array([True]), jnp.array([True]), jnp.array([5]), s)
+        s = jnp.where(k, s + 1, 0)
+        n_skips.append(int(s[0]))
+    assert max(n_skips) == cfg.k_skip and n_skips.count(0) == 3  # verify after every k_skip skips
+    off = acc.may_repeat(acc.SkipConfig(source="recent", enabled=False), in_ret, last_valid, repeats, skips)
+    assert not bool(off.any())
+    with pytest.raises(ValueError, match="valid: retrieval, recent"):
+        acc.SkipConfig(source="datastore")
+    with pytest.raises(ValueError, match="n_confirm >= 1"):
+        acc.SkipConfig(source="recent", n_confirm=0)
+
+
 def test_fused_metric_matches_numpy_on_a_trajectory():
     rng = np.random.default_rng(0)
     v, w, a, g = (rng.normal(size=(20, 3)), rng.normal(size=(20, 3)), rng.normal(size=(20, 3)), rng.normal(size=20))

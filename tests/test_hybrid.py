@@ -154,6 +154,32 @@ def test_recent_actions_are_verified_as_candidates(tiny_hybrid):
         dataclasses.replace(hcfg, recent_candidates=12).check_fits(vla.VLAConfig(cache_slots=160))
 
 
+def test_repeat_skip_executes_the_last_action_after_confirmed_repeats(tiny_hybrid):
+    """Verify-skip from recent actions: on an unchanged observation the target repeats its
+    action, so once a verified step has accepted the previous action whole (n_confirm 1), the
+    next k_skip steps execute it again with no target pass, then one step verifies again."""
+    params, obs, ar_tokens = tiny_hybrid
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", n_candidates=0, recent_candidates=2,
+                               continuation="ar", skip=acceptance.SkipConfig(source="recent", n_confirm=1, k_skip=2))
+    run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+    state = hybrid.init_state(B, spec, hcfg)
+    skipped, passes = [], []
+    for _ in range(7):
+        _, tokens, state, stats = run(params, CFG, hcfg, spec, tok, state, obs, kin, jnp.arange(B))
+        np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+        skipped.append(np.asarray(stats["skipped"]))
+        passes.append(np.asarray(stats["target_passes"]))
+    np.testing.assert_array_equal(np.array(skipped), np.array([[0, 0, 1, 1, 0, 1, 1]] * B).T)
+    np.testing.assert_array_equal(np.array(passes)[np.array(skipped) > 0], 0)
+    np.testing.assert_array_equal(np.array(passes)[[1, 4]], 1)  # the repeat verified in the prefill
+    with pytest.raises(ValueError, match="needs recent_candidates >= 1"):
+        dataclasses.replace(hcfg, n_candidates=1, recent_candidates=0)
+
+
 def test_config_rejects_bad_settings():
     with pytest.raises(ValueError, match="valid: hybrid, retrieval, drafter"):
         hybrid.HybridConfig(mode="sometimes")
