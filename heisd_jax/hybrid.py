@@ -30,7 +30,9 @@ Per env and control step (`step`):
      what 1.7 AR passes (0.25 ms each) cost, while the drafter's prompt pass and hand-over
      add to every action.
 Rows that need no target pass (skipped) are masked, and the target call itself is skipped
-(`lax.cond`) when no row in the batch needs it.
+(`lax.cond`) when no row in the batch needs it. With `row_buckets` > 1 the rows that need it
+are gathered into the smallest of the sizes B/k, 2B/k, .., B that holds them (`compact_rows`),
+so skipped rows also save work at batch sizes above 1, at the price of k compiled copies.
 
 With `strict` acceptance everywhere and verify-skip off (`HybridConfig.lossless`), the
 tokens equal greedy AR decoding for any inputs.
@@ -74,6 +76,7 @@ class HybridConfig:
     metric: kinematics.MetricConfig = kinematics.MetricConfig()
     boundary: kinematics.BoundaryConfig = kinematics.BoundaryConfig()
     budget: budget_lib.BudgetConfig = budget_lib.BudgetConfig()  # auto: `spec`'s tree is replaced per step
+    row_buckets: int = 1  # rows needing a target pass run in the smallest of this many batch fractions (1: all)
 
     def __post_init__(self):
         _check("mode", self.mode, MODES)
@@ -96,6 +99,8 @@ class HybridConfig:
             raise ValueError(f"relax_bins must be in 0..255, got {self.relax_bins}")
         if self.max_dist <= 0:
             raise ValueError(f"max_dist must be > 0, got {self.max_dist}")
+        if self.row_buckets < 1:
+            raise ValueError(f"row_buckets must be >= 1, got {self.row_buckets}")
         if self.acceptance == "strict" and self.skip.enabled and self.mode != "drafter":
             raise ValueError("verify-skip executes unverified actions: with strict (lossless) retrieval acceptance, "
                              "switch skip off")
@@ -289,6 +294,38 @@ def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_l
     return tokens, stats, bstate
 
 
+def bucket_sizes(batch: int, n_buckets: int) -> tuple[int, ...]:
+    """The row counts `compact_rows` may run at: ceil(j * batch / n_buckets), j = 1..n, distinct."""
+    return tuple(sorted({-(-j * batch // n_buckets) for j in range(1, n_buckets + 1)}))
+
+
+def compact_rows(fn, rows, skip: jnp.ndarray, skip_tokens: jnp.ndarray, n_buckets: int, fill: dict):
+    """Runs `fn(rows, skip) -> (tokens [b, 7], stats {key: [b]}, *extra)` on only as many rows
+    as need a target pass: the rows with skip False, gathered (stable order) into the smallest
+    of `bucket_sizes` that holds them, padded with skipped rows; the others get `skip_tokens`
+    and `fill`'s stats (0 where not given). rows: a pytree of [B, ...] arrays. Each row's
+    result is the same as in one call on the whole batch, up to the batch size's numerics."""
+    b = skip.shape[0]
+    sizes = bucket_sizes(b, n_buckets)
+    if len(sizes) == 1:
+        return fn(rows, skip)
+    order = jnp.argsort(skip, stable=True)  # rows that need the target first
+
+    def run(size):
+        def call(_):
+            if size == b:
+                return fn(rows, skip)
+            idx = order[:size]
+            tokens, stats, *extra = fn(jax.tree.map(lambda x: x[idx], rows), skip[idx])
+            full = {k: jnp.broadcast_to(jnp.asarray(fill.get(k, 0.0), v.dtype), (b,)).at[idx].set(v)
+                    for k, v in stats.items()}
+            return (skip_tokens.at[idx].set(tokens), full, *extra)
+        return call
+    need = jnp.sum(~skip)
+    which = jnp.searchsorted(jnp.asarray(sizes), need)  # the first size >= need
+    return jax.lax.switch(which, [run(size) for size in sizes], None)
+
+
 @struct.dataclass
 class HybridState:
     """What the HeiSD step carries from one control step to the next, per env."""
@@ -376,10 +413,16 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
                               state.skips)
         cand = jnp.concatenate([cand, state.recent], 1)
         valid = jnp.concatenate([valid, state.recent_valid], 1)
+    fill = {"tokens": float(ACTION_DIM), "skipped": 1.0}  # the stats of a row left out of the bucket
     if auto:
-        tokens, stats, bstate = decode_auto(params, cfg, hcfg, bstate, option, obs, cand, valid, use_retrieval, skip)
+        fill.update({f"budget_{o.name}": (option == i).astype(jnp.float32)
+                     for i, o in enumerate(budget_lib.options(hcfg.budget, hcfg.mode))})
+        tokens, stats, bstate = compact_rows(
+            lambda r, sk: decode_auto(params, cfg, hcfg, bstate, option, *r, sk),
+            (obs, cand, valid, use_retrieval), skip, cand[:, 0], hcfg.row_buckets, fill)
     else:
-        tokens, stats = decode(params, cfg, hcfg, obs, cand, valid, use_retrieval, skip)
+        tokens, stats = compact_rows(lambda r, sk: decode(params, cfg, hcfg, *r, sk),
+                                     (obs, cand, valid, use_retrieval), skip, cand[:, 0], hcfg.row_buckets, fill)
     actions = tok.decode(tokens)
     whole = stats["retrieval_whole"] > 0
     if hcfg.recent_candidates:

@@ -137,6 +137,9 @@ class RetrievalSettings(DrafterSettings):
                                     "option's estimate returns to its long-run mean (0: never).")
     budget_margin: float = _setting(_BUDGET.margin, "budget=auto: a drafting option must be predicted "
                                     "this much faster than AR to be chosen.")
+    row_buckets: int = _setting(_HYB.row_buckets, "Rows that need a target pass (not skipped) run gathered in the "
+                                "smallest of this many batch fractions that holds them (1: always the whole batch; "
+                                "k > 1 compiles the decode k times).")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -227,7 +230,7 @@ def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hy
         spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"], relax_bins=s["retrieval_relax_bins"],
         seq=acceptance.SeqRelaxedConfig(r_max=s["r_max"], r_seq=s["r_seq"]),
         n_candidates=s["n_candidates"], recent_candidates=s["recent_candidates"], max_dist=s["max_dist"],
-        verify=s["verify"], continuation=s["continuation"], skip=skip, metric=metric,
+        verify=s["verify"], continuation=s["continuation"], skip=skip, metric=metric, row_buckets=s["row_buckets"],
         boundary=kinematics.BoundaryConfig(**bd), budget=budget_config(s, given))
 
 

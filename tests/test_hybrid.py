@@ -180,6 +180,55 @@ def test_repeat_skip_executes_the_last_action_after_confirmed_repeats(tiny_hybri
         dataclasses.replace(hcfg, n_candidates=1, recent_candidates=0)
 
 
+def test_compact_rows_runs_the_rows_that_need_the_target_in_the_smallest_bucket():
+    assert hybrid.bucket_sizes(16, 4) == (4, 8, 12, 16) and hybrid.bucket_sizes(6, 4) == (2, 3, 5, 6)
+    assert hybrid.bucket_sizes(1, 4) == (1,) and hybrid.bucket_sizes(5, 1) == (5,)
+    rows = jnp.arange(16 * 7, dtype=jnp.int32).reshape(16, 7)
+
+    def fn(r, sk):  # tokens: the rows doubled; stats: the batch it ran at, and what it saw skip
+        return r * 2, {"batch": jnp.full(sk.shape, float(sk.shape[0])), "skipped": sk.astype(jnp.float32)}
+    fallback = jnp.full((16, 7), -1, jnp.int32)
+    run = jax.jit(lambda sk: hybrid.compact_rows(fn, rows, sk, fallback, 4, {"skipped": 1.0}))
+    for need in (0, 3, 4, 5, 12, 16):
+        skip = np.ones(16, bool)
+        skip[np.random.default_rng(need).permutation(16)[:need]] = False
+        tokens, stats = run(jnp.asarray(skip))
+        ran = ~skip
+        np.testing.assert_array_equal(np.asarray(tokens)[ran], np.asarray(rows)[ran] * 2)
+        np.testing.assert_array_equal(np.asarray(tokens)[skip & (np.asarray(stats["batch"]) == 0)], -1)
+        np.testing.assert_array_equal(np.asarray(stats["batch"])[ran], max(4, -(-need // 4) * 4))
+        np.testing.assert_array_equal(np.asarray(stats["skipped"]), skip)
+
+
+def test_row_buckets_give_the_same_actions_as_the_whole_batch(tiny_hybrid):
+    """Half the rows skip (repeat their last action) and half verify: gathered into a smaller
+    bucket, each row's tokens and stats are the same as decoded in the whole batch."""
+    params, obs, ar_tokens = tiny_hybrid
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    cand, _ = candidates(ar_tokens, np.random.default_rng(1))
+    store = retrieval.Datastore(keys=jnp.zeros((B * 3, spec.dim)), sq_norms=jnp.zeros((B * 3,)),
+                                tokens=jnp.asarray(cand).reshape(B * 3, 7), task=jnp.repeat(jnp.arange(B), 3))
+    p = dict(params, store=store)
+    base = dataclasses.replace(STRICT, acceptance="seq_relaxed", recent_candidates=1,
+                               skip=acceptance.SkipConfig(source="recent", n_confirm=1, k_skip=1))
+    run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+    state = hybrid.init_state(B, spec, base)
+    _, _, state, _ = run(p, CFG, base, spec, tok, state, obs, kin, jnp.arange(B))
+    state = dataclasses.replace(state, repeats=jnp.arange(B) % 2)  # odd rows repeat, even rows verify
+    out = {k: run(p, CFG, dataclasses.replace(base, row_buckets=k), spec, tok, state, obs, kin, jnp.arange(B))
+           for k in (1, 3)}
+    np.testing.assert_array_equal(np.asarray(out[1][2].repeats), np.asarray(out[3][2].repeats))
+    np.testing.assert_array_equal(np.asarray(out[1][3]["skipped"]), np.arange(B) % 2)
+    np.testing.assert_array_equal(np.asarray(out[1][1]), np.asarray(out[3][1]))
+    for key in hybrid.STAT_KEYS:
+        np.testing.assert_allclose(np.asarray(out[1][3][key]), np.asarray(out[3][3][key]), err_msg=key)
+    with pytest.raises(ValueError, match="row_buckets must be >= 1"):
+        dataclasses.replace(base, row_buckets=0)
+
+
 def test_config_rejects_bad_settings():
     with pytest.raises(ValueError, match="valid: hybrid, retrieval, drafter"):
         hybrid.HybridConfig(mode="sometimes")
