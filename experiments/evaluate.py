@@ -12,6 +12,8 @@ settings is refused, never overwritten (use another --out).
 from __future__ import annotations
 
 import os
+import shlex
+import sys
 import time
 
 T_START = time.perf_counter()  # the summary's wall time counts the imports below (JAX, MuJoCo)
@@ -88,6 +90,8 @@ def main(argv):
         timing["cost_table"] = {"options": table.options, "fixed_ms": table.fixed_ms, "round_ms": table.round_ms,
                                 "ceiling_ar_over_prefill": table.ceiling}
 
+    made = results_io.provenance("python -m experiments.evaluate " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
+
     def write(results):
         summary = ev.summarize(env.tasks, results)
         if timing["control_steps"]:
@@ -96,7 +100,7 @@ def main(argv):
         timing["wall_seconds"] = time.perf_counter() - T_START
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
-                                                 "timing": timing})
+                                                 "timing": timing, **made})
         return summary
 
     def on_batch(results, t):
