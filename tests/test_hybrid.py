@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import acceptance, hybrid, kinematics, retrieval, spec_decode as sd, vla
+from heisd_jax import acceptance, budget, hybrid, kinematics, retrieval, spec_decode as sd, vla
 from heisd_jax.tokenizer import ActionTokenizer
 
 from tiny_models import CFG, HYBRID_B as B, candidates
@@ -225,6 +225,19 @@ def test_row_buckets_give_the_same_actions_as_the_whole_batch(tiny_hybrid):
     np.testing.assert_array_equal(np.asarray(out[1][1]), np.asarray(out[3][1]))
     for key in hybrid.STAT_KEYS:
         np.testing.assert_allclose(np.asarray(out[1][3][key]), np.asarray(out[3][3][key]), err_msg=key)
+    # budget=auto: the same, and every row (in the bucket or not) reports the option chosen
+    auto = dataclasses.replace(base, budget=budget.BudgetConfig(mode="auto", trees=((2, 2, 4),)))
+    n_opts = len(budget.options(auto.budget, auto.mode))
+    pa = dict(p, costs=budget.Costs(fixed_ms=jnp.asarray([1.0] + [0.5] * (n_opts - 1)),
+                                    round_ms=jnp.full((n_opts,), 0.1)))
+    state_a = dataclasses.replace(hybrid.init_state(B, spec, auto), recent=state.recent,
+                                  recent_valid=state.recent_valid, repeats=state.repeats)
+    out = {k: run(pa, CFG, dataclasses.replace(auto, row_buckets=k), spec, tok, state_a, obs, kin, jnp.arange(B))
+           for k in (1, 3)}
+    np.testing.assert_array_equal(np.asarray(out[1][1]), np.asarray(out[3][1]))
+    for key in out[1][3]:
+        np.testing.assert_allclose(np.asarray(out[1][3][key]), np.asarray(out[3][3][key]), err_msg=key)
+    assert sum(float(out[3][3][k][0]) for k in out[3][3] if k.startswith("budget_")) == 1.0
     with pytest.raises(ValueError, match="row_buckets must be >= 1"):
         dataclasses.replace(base, row_buckets=0)
 
