@@ -47,10 +47,11 @@ class Agreement:
     clamped_fraction: float  # of C's steps with any servo's force clamped
     max_dq: float  # free running, max over all steps
     final_dq: float  # free running, after the last step
-    dq_before_first_clamp: float  # free running, max over the steps before each env's first clamped step
-    dq_first_clamp: float  # free running, after each env's first clamped step (nan: none clamped)
-    one_step_clamped: float  # one step from C's state, max over steps with a servo clamped (nan: none)
-    one_step_free: float  # one step from C's state, max over steps with no servo clamped
+    dq_before_first_clamp: float | None  # free running, max over the steps before each env's first clamped step
+    dq_first_clamp: float | None  # free running, after each env's first clamped step
+    one_step_clamped: float | None  # one step from C's state, max over the steps with a servo clamped
+    one_step_free: float | None  # one step from C's state, max over the steps with no servo clamped
+    # (None: no such step, or the one-step measure skipped)
 
     def row(self) -> dict:
         return dataclasses.asdict(self)
@@ -153,11 +154,13 @@ def _mjx_data(m: mujoco.MjModel, starts: Starts) -> mjx.Data:
     return jax.tree.map(lambda *x: jnp.stack(x), *ds)
 
 
-def mjx_rollout(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray) -> np.ndarray:
-    """MJX, all envs at once: qpos after each step [B, N, nq]."""
+def mjx_rollout(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray,
+                compiler_options: dict | None = None) -> np.ndarray:
+    """MJX, all envs at once: qpos after each step [B, N, nq]. `compiler_options` go to XLA
+    (e.g. {"xla_backend_optimization_level": 0}: compiles in less than half the time, for
+    short runs such as tests)."""
     mx = mjx.put_model(m)
 
-    @jax.jit
     def run(d, ctrl):  # ctrl [N, B, nu]
         def body(d, c):
             new = jax.vmap(lambda d, c: physics.step(mx, d.replace(ctrl=c), cfg))(d, c)
@@ -165,7 +168,9 @@ def mjx_rollout(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, c
             return jax.tree.map(lambda n, o: n.astype(o.dtype), new, d), new.qpos
         return jax.lax.scan(body, d, ctrl)[1]
 
-    return np.asarray(run(_mjx_data(m, starts), jnp.asarray(ctrl.transpose(1, 0, 2)))).transpose(1, 0, 2)
+    args = (_mjx_data(m, starts), jnp.asarray(ctrl.transpose(1, 0, 2)))
+    compiled = jax.jit(run).lower(*args).compile(compiler_options)
+    return np.asarray(compiled(*args)).transpose(1, 0, 2)
 
 
 def mjx_one_step(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, c: dict[str, np.ndarray],
@@ -190,32 +195,34 @@ def mjx_one_step(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, 
     return np.asarray(one(xs)).reshape(b, n, -1)
 
 
-def compare(cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray, one_step: bool = True) -> Agreement:
+def compare(cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray, one_step: bool = True,
+            compiler_options: dict | None = None) -> Agreement:
     """MuJoCo C vs MJX under `cfg` (the scene compiled with it; MJX stepped by
     `physics.step`), float64, from `starts` under controls `ctrl` [B, N, nu]. one_step=False
-    skips the one-step measure (its fields are nan; one MJX compilation instead of two)."""
+    skips the one-step measure (one MJX compilation instead of two); `compiler_options`: see
+    mjx_rollout."""
     m = physics.mj_model(cfg)
     arm = scene.scene_ids(m).arm_qpos
     with jax.enable_x64(True):
         c = c_rollout(m, starts, ctrl)
-        free = np.abs(mjx_rollout(m, cfg, starts, ctrl) - c["qpos"])[..., arm].max(-1)  # [B, N]
+        free = np.abs(mjx_rollout(m, cfg, starts, ctrl, compiler_options) - c["qpos"])[..., arm].max(-1)  # [B, N]
         one = (np.abs(mjx_one_step(m, cfg, starts, c, ctrl) - c["qpos"])[..., arm].max(-1) if one_step
-               else np.full(free.shape, np.nan))  # [B, N]
+               else None)  # [B, N]
     lo, hi = m.actuator_forcerange[:, 0], m.actuator_forcerange[:, 1]
     clamped = (m.actuator_forcelimited.astype(bool) & ((c["force"] <= lo) | (c["force"] >= hi))).any(-1)  # [B, N]
     any_env = clamped.any(1)
     first = np.where(any_env, clamped.argmax(1), ctrl.shape[1])  # [B]
     before = np.arange(ctrl.shape[1]) < first[:, None]
-    nanmax = lambda x: float(np.max(x)) if np.size(x) else float("nan")
+    most = lambda x: float(np.max(x)) if x is not None and np.size(x) else None
     return Agreement(
         steps=int(ctrl.shape[1]),
         clamped_fraction=float(clamped.mean()),
         max_dq=float(free.max()),
         final_dq=float(free[:, -1].max()),
-        dq_before_first_clamp=nanmax(free[before]),
-        dq_first_clamp=nanmax(free[any_env, first[any_env]]),
-        one_step_clamped=nanmax(one[clamped]),
-        one_step_free=nanmax(one[~clamped]),
+        dq_before_first_clamp=most(free[before]),
+        dq_first_clamp=most(free[any_env, first[any_env]]),
+        one_step_clamped=None if one is None else most(one[clamped]),
+        one_step_free=None if one is None else most(one[~clamped]),
     )
 
 

@@ -170,7 +170,11 @@ def scene_ids(m: mujoco.MjModel) -> SceneIds:
     )
 
 
-@functools.lru_cache(maxsize=None)
 def build_model(integrator: str = "implicitfast", force_limits: bool = True) -> mujoco.MjModel:
     """Compiles the scene (cached per setting: the model is immutable and shared)."""
+    return _compiled(integrator, force_limits)
+
+
+@functools.lru_cache(maxsize=None)
+def _compiled(integrator: str, force_limits: bool) -> mujoco.MjModel:
     return mujoco.MjModel.from_xml_string(scene_mjcf(integrator, force_limits))
