@@ -20,7 +20,7 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
-from envs import camera, ik, language, proprio, robot, rotations, scene, tasks as tasks_lib
+from envs import camera, ik, language, physics, proprio, robot, rotations, scene, tasks as tasks_lib
 from heisd_jax.observation import Observation
 
 N_LAYOUT_TRIES = 16  # candidate layouts drawn per reset; the first valid one is used
@@ -32,6 +32,7 @@ class EnvConfig:
     control: ik.ControlConfig = ik.ControlConfig()
     render: bool = True  # False: obs.image is all zeros (for experts and physics benchmarks)
     arm_init_noise: float = 0.02  # rad, uniform noise on the ready pose at reset
+    physics: physics.PhysicsConfig = physics.PhysicsConfig()  # integrator, force limits (envs/physics.py)
 
 
 @struct.dataclass
@@ -74,7 +75,7 @@ class TabletopEnv:
         self.config = config
         self.table = tasks_lib.compile_tasks(self.tasks)
         self.global_index = np.array([tasks_lib.ALL_TASKS.index(t) for t in self.tasks], np.int32)
-        self.mj_model = scene.build_model()
+        self.mj_model = physics.mj_model(config.physics)
         # This process's own device: with several processes (jax.distributed) jax.devices()[0]
         # is process 0's, which a jitted rollout elsewhere cannot close over.
         device = jax.local_devices()[0]
@@ -104,6 +105,26 @@ class TabletopEnv:
 
     # ---- reset --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, task_id: jnp.ndarray) -> EnvState:
+        data, info = self.initial_data(rng, task_id)
+        data = mjx.forward(self.model, data)
+        kin = proprio.ee_kinematics(self.model, data, self.ids, jnp.zeros(3), scene.CONTROL_DT)
+        false = jnp.zeros((), bool)
+        return EnvState(
+            data=data,
+            obs=self._observe(data, kin, info),
+            kin=kin,
+            info=info,
+            step=jnp.zeros((), jnp.int32),
+            success=false,
+            truncated=false,
+            invalid_action=false,
+            unstable=false,
+            done=false,
+        )
+
+    def initial_data(self, rng: jax.Array, task_id: jnp.ndarray) -> tuple[mjx.Data, EpisodeInfo]:
+        """An episode's initial joint positions, receptacle poses and controls (`reset` without
+        its forward pass: what a simulator needs to start the episode) and what it decided."""
         task_id = jnp.asarray(task_id, jnp.int32)
         k_layout, k_color, k_arm = jax.random.split(rng, 3)
         obj_xy, obj_yaw, rec_xy, goal_obj = self._sample_layout(k_layout, task_id)
@@ -120,22 +141,7 @@ class TabletopEnv:
         mocap_pos = self._data0.mocap_pos.at[ids.mocap].set(rec_pos)
         ctrl = jnp.concatenate([arm, jnp.full((2,), robot.FINGER_OPEN)])
         data = self._data0.replace(qpos=qpos, mocap_pos=mocap_pos, ctrl=ctrl)
-        data = mjx.forward(self.model, data)
-        info = EpisodeInfo(task_id=task_id, goal_obj=goal_obj, colors=colors)
-        kin = proprio.ee_kinematics(self.model, data, ids, jnp.zeros(3), scene.CONTROL_DT)
-        false = jnp.zeros((), bool)
-        return EnvState(
-            data=data,
-            obs=self._observe(data, kin, info),
-            kin=kin,
-            info=info,
-            step=jnp.zeros((), jnp.int32),
-            success=false,
-            truncated=false,
-            invalid_action=false,
-            unstable=false,
-            done=false,
-        )
+        return data, EpisodeInfo(task_id=task_id, goal_obj=goal_obj, colors=colors)
 
     def _sample_layout(self, key, task_id):
         """Object poses, receptacle positions and resolved goal objects, such that every
@@ -185,7 +191,7 @@ class TabletopEnv:
         ramp = start + (target - start) * jnp.where(jnp.arange(target.shape[0]) < 7, frac, 1.0)  # [N, nu]
 
         def substep(d, ctrl):
-            return mjx.step(self.model, d.replace(ctrl=ctrl)), None
+            return physics.step(self.model, d.replace(ctrl=ctrl), self.config.physics), None
 
         data, _ = jax.lax.scan(substep, state.data, ramp)
         data = mjx.com_pos(self.model, mjx.kinematics(self.model, data))  # derived state at the new qpos

@@ -110,18 +110,20 @@ def robot_mjcf() -> str:
     </body>"""
 
 
-def actuators_mjcf() -> str:
+def actuators_mjcf(force_limits: bool = True) -> str:
     """Joint position servos: stiff on the shoulder/elbow, softer on the wrist, torque-limited
-    to Franka's 87 / 12 Nm; each finger is a position servo (grip force ~ kp x closure)."""
+    to Franka's 87 / 12 Nm; each finger is a position servo (grip force ~ kp x closure).
+    force_limits=False drops every forcerange (unlimited torques and grip force)."""
+    limit = (lambda f: f' forcerange="-{f} {f}"') if force_limits else (lambda f: "")
     rows = []
     for i, (lo, hi) in enumerate(zip(ARM_LOWER, ARM_UPPER)):
         kp, kv, tau = (4500, 200, 87) if i < 4 else (2000, 60, 12)
         rows.append(
             f'<position name="a_joint{i + 1}" joint="joint{i + 1}" kp="{kp}" kv="{kv}" '
-            f'ctrlrange="{lo:.4f} {hi:.4f}" forcerange="-{tau} {tau}"/>'
+            f'ctrlrange="{lo:.4f} {hi:.4f}"{limit(tau)}/>'
         )
     for j in FINGER_JOINTS:
         rows.append(
-            f'<position name="a_{j}" joint="{j}" kp="250" kv="8" ctrlrange="0 {FINGER_OPEN}" forcerange="-20 20"/>'
+            f'<position name="a_{j}" joint="{j}" kp="250" kv="8" ctrlrange="0 {FINGER_OPEN}"{limit(20)}/>'
         )
     return "\n    ".join(rows)

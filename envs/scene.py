@@ -67,8 +67,12 @@ def _look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
     return " ".join(f"{v:.5f}" for v in (*right, *up))
 
 
-def scene_mjcf() -> str:
-    """The full MJCF document of the scene."""
+_MJCF_INTEGRATOR = {"implicitfast": "implicitfast", "euler": "Euler", "rk4": "RK4"}
+
+
+def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True) -> str:
+    """The full MJCF document of the scene. `integrator`: implicitfast, euler or rk4;
+    `force_limits`: the servos' forcerange (False: unlimited torques)."""
     obj = f'contype="{robot.BIT_OBJECT}" conaffinity="{robot.BIT_OBJECT | robot.BIT_ENV | robot.BIT_GRIPPER}" condim="3" friction="1.2 0.005 0.0001" solref="0.01 1"'
     env = f'contype="{robot.BIT_ENV}" conaffinity="{robot.BIT_OBJECT}" condim="3" friction="1.0 0.005 0.0001" solref="0.01 1"'
     objects = []
@@ -89,7 +93,7 @@ def scene_mjcf() -> str:
     )
     return f"""<mujoco model="heisd_tabletop">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{TIMESTEP}" iterations="6" ls_iterations="8" integrator="implicitfast">
+  <option timestep="{TIMESTEP}" iterations="6" ls_iterations="8" integrator="{_MJCF_INTEGRATOR[integrator]}">
     <flag eulerdamp="disable"/>
   </option>
   <default>
@@ -121,7 +125,7 @@ def scene_mjcf() -> str:
     <exclude body1="finger_left" body2="finger_right"/>
   </contact>
   <actuator>
-    {robot.actuators_mjcf()}
+    {robot.actuators_mjcf(force_limits)}
   </actuator>
 </mujoco>"""
 
@@ -166,7 +170,11 @@ def scene_ids(m: mujoco.MjModel) -> SceneIds:
     )
 
 
+def build_model(integrator: str = "implicitfast", force_limits: bool = True) -> mujoco.MjModel:
+    """Compiles the scene (cached per setting: the model is immutable and shared)."""
+    return _compiled(integrator, force_limits)
+
+
 @functools.lru_cache(maxsize=None)
-def build_model() -> mujoco.MjModel:
-    """Compiles the scene (cached: the model is immutable and shared)."""
-    return mujoco.MjModel.from_xml_string(scene_mjcf())
+def _compiled(integrator: str, force_limits: bool) -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(scene_mjcf(integrator, force_limits))
