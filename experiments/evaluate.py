@@ -11,6 +11,7 @@ settings is refused, never overwritten (use another --out).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shlex
 import sys
@@ -21,7 +22,7 @@ T_START = time.perf_counter()  # the summary's wall time counts the imports belo
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
-from envs import tasks as tasks_lib
+from envs import physics, tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
@@ -42,6 +43,9 @@ flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
     flags.declare_key_flag(_name)
+flags.DEFINE_bool("clamp_aware_implicit", physics.PhysicsConfig.clamp_aware_implicit,
+                  "Physics: leave a servo clamped at its force limit out of implicitfast's damping, as MuJoCo C "
+                  "does (envs/physics.py); off: MJX's own rule, under which the shipped policies were trained.")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
@@ -60,13 +64,17 @@ def main(argv):
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
+    env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit)
+    if env_physics != physics.PhysicsConfig():  # recorded where it differs (older results files have no key)
+        settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}
     for name in methods.get(FLAGS.method).loads:
         if name != "checkpoint":
             settings[name] = os.path.abspath(paths[name])
     try:
         done = results_io.load_resumable(FLAGS.out, settings)
-        env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
+        env = TabletopEnv(task_list, dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint),
+                                                         physics=env_physics))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
                                      cost_cache=FLAGS.cost_cache or None,

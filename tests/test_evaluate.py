@@ -130,3 +130,13 @@ def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path
                        cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
     assert out.read_text() == before
+    # The physics is part of the settings: results under MJX's rule are not resumed under C's.
+    results_io.write_json_atomic(out, {"settings": {"method": "expert", "tasks": ["left_block_plate"],
+                                                    "episodes_per_task": 1},
+                                       "episodes": {"left_block_plate": [{"success": True}]}})
+    before = out.read_text()
+    r = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--method=expert", "--tasks=left_block_plate",
+                        "--episodes=1", "--num_envs=1", "--clamp_aware_implicit", f"--out={out}"],
+                       capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
+    assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
+    assert out.read_text() == before
