@@ -127,11 +127,13 @@ def main(argv):
 
     results = ev.evaluate(env, policy, cfg, done, on_batch)
     summary = write(results)
-    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'passes/act':>12}{'accept len':>12}")
+    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
+          f"{'passes/ep':>11}")
     for name, s in summary["suites"].items():
-        passes, al = s.get("target_passes_per_action"), s.get("tokens_per_target_pass")
-        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{'-' if passes is None else f'{passes:.2f}':>12}"
-              f"{'-' if al is None else f'{al:.2f}':>12}")
+        cols = [s.get(k) for k in ("target_passes_per_action", "tokens_per_target_pass", "target_passes_per_episode")]
+        passes, al, per_ep = ("-" if v is None else f"{v:.{d}f}" for v, d in zip(cols, (2, 2, 0)))
+        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{s['mean_steps']:>10.1f}{passes:>12}{al:>12}"
+              f"{per_ep:>11}")
     if timing["control_steps"]:
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")

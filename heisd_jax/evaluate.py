@@ -155,12 +155,14 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
 
 
 def _decode_means(recs: list[dict]) -> dict:
-    """Per-action decoding statistics of a set of episodes: every decode total divided by
-    the number of actions taken (e.g. target passes per action)."""
+    """Decoding statistics of a set of episodes: every decode total divided by the number of
+    actions taken (e.g. target passes per action), and target passes per episode."""
     actions = sum(r["steps"] for r in recs)
     keys = set().union(*(r.get("decode", {}) for r in recs))
     out = {f"{k}_per_action": sum(r.get("decode", {}).get(k, 0.0) for r in recs) / max(actions, 1)
            for k in sorted(keys)}
+    if "target_passes" in keys:  # what an episode costs: a method that lengthens episodes pays here
+        out["target_passes_per_episode"] = sum(r["decode"].get("target_passes", 0.0) for r in recs) / len(recs)
     if "tokens" in keys and "target_passes" in keys:  # acceptance length: tokens per target pass
         passes = sum(r["decode"].get("target_passes", 0.0) for r in recs)
         out["tokens_per_target_pass"] = sum(r["decode"].get("tokens", 0.0) for r in recs) / max(passes, 1e-9)
@@ -183,5 +185,5 @@ def summarize(env_tasks: tuple[tasks_lib.Task, ...], results: dict[str, list]) -
     for name, recs in per_suite.items():
         n_succ = int(sum(r["success"] for r in recs))
         suites[name] = {"episodes": len(recs), "successes": n_succ, "success_rate": n_succ / len(recs),
-                        **_decode_means(recs)}
+                        "mean_steps": float(np.mean([r["steps"] for r in recs])), **_decode_means(recs)}
     return {"tasks": per_task, "suites": suites}

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 import pytest
 
+from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from heisd_jax import checkpoint, evaluate as ev, methods, results_io, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
@@ -140,3 +141,16 @@ def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path
                        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
     assert out.read_text() == before
+
+
+def test_summary_counts_per_action_and_per_episode():
+    """A method that takes more steps per episode pays per episode even at fewer passes per action."""
+    task = tasks_lib.get_tasks("spatial")[0]
+    results = {task.name: [{"success": True, "steps": 10, "decode": {"target_passes": 30.0, "tokens": 70.0}},
+                           {"success": False, "steps": 30, "decode": {"target_passes": 60.0, "tokens": 210.0}}]}
+    summary = ev.summarize((task,), results)
+    s = summary["suites"]["spatial"]
+    assert s["episodes"] == 2 and s["success_rate"] == 0.5 and s["mean_steps"] == 20.0
+    assert s["target_passes_per_action"] == 90.0 / 40 and s["target_passes_per_episode"] == 45.0
+    assert s["tokens_per_target_pass"] == 280.0 / 90
+    assert summary["tasks"][task.name]["target_passes_per_episode"] == 45.0
