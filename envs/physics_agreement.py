@@ -154,6 +154,11 @@ def _mjx_data(m: mujoco.MjModel, starts: Starts) -> mjx.Data:
     return jax.tree.map(lambda *x: jnp.stack(x), *ds)
 
 
+def _step_batch(mx: mjx.Model, cfg: physics.PhysicsConfig, d: mjx.Data, ctrl: jnp.ndarray) -> mjx.Data:
+    """One physics step of every env: d batched, ctrl [B, nu]."""
+    return jax.vmap(lambda d, c: physics.step(mx, d.replace(ctrl=c), cfg))(d, ctrl)
+
+
 def mjx_rollout(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray,
                 compiler_options: dict | None = None) -> np.ndarray:
     """MJX, all envs at once: qpos after each step [B, N, nq]. `compiler_options` go to XLA
@@ -163,7 +168,7 @@ def mjx_rollout(m: mujoco.MjModel, cfg: physics.PhysicsConfig, starts: Starts, c
 
     def run(d, ctrl):  # ctrl [N, B, nu]
         def body(d, c):
-            new = jax.vmap(lambda d, c: physics.step(mx, d.replace(ctrl=c), cfg))(d, c)
+            new = _step_batch(mx, cfg, d, c)
             # put_data's integer fields are int32; under x64 mjx.step returns some as int64.
             return jax.tree.map(lambda n, o: n.astype(o.dtype), new, d), new.qpos
         return jax.lax.scan(body, d, ctrl)[1]
@@ -208,8 +213,7 @@ def compare(cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray, one_st
         free = np.abs(mjx_rollout(m, cfg, starts, ctrl, compiler_options) - c["qpos"])[..., arm].max(-1)  # [B, N]
         one = (np.abs(mjx_one_step(m, cfg, starts, c, ctrl) - c["qpos"])[..., arm].max(-1) if one_step
                else None)  # [B, N]
-    lo, hi = m.actuator_forcerange[:, 0], m.actuator_forcerange[:, 1]
-    clamped = (m.actuator_forcelimited.astype(bool) & ((c["force"] <= lo) | (c["force"] >= hi))).any(-1)  # [B, N]
+    clamped = np.asarray(physics.clamped(m, c["force"])).any(-1)  # [B, N]
     any_env = clamped.any(1)
     first = np.where(any_env, clamped.argmax(1), ctrl.shape[1])  # [B]
     before = np.arange(ctrl.shape[1]) < first[:, None]
@@ -237,7 +241,7 @@ def step_seconds(cfg: physics.PhysicsConfig, starts: Starts, ctrl: np.ndarray, r
     @jax.jit
     def run(d):
         def body(d, c):
-            return jax.vmap(lambda d, c: physics.step(mx, d.replace(ctrl=c), cfg))(d, c), None
+            return _step_batch(mx, cfg, d, c), None
         return jax.lax.scan(body, d, u)[0]
 
     jax.block_until_ready(run(d0))

@@ -24,8 +24,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import shlex
-import sys
 import time
 from pathlib import Path
 
@@ -257,8 +255,7 @@ def main(argv):
 
 
 def write(rows, query_ms):
-    command = "python -m experiments.bench_methods " + " ".join(shlex.quote(a) for a in sys.argv[1:])
-    results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(command), "steps": FLAGS.steps,
+    results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "steps": FLAGS.steps,
                                              "record_method": FLAGS.record_method, "suites": FLAGS.suites,
                                              "query_ms": query_ms, "rows": rows})
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import os
 from pathlib import Path
+import shlex
 import sys
 from typing import Callable, NoReturn
 
@@ -74,6 +75,12 @@ def _prog() -> str:
     if spec is not None and spec.name:
         return f"python -m {spec.name}"
     return os.path.basename(sys.argv[0]) if sys.argv else "heisd-jax"
+
+
+def command_line() -> str:
+    """This process's command as a user would type it again (`python -m MODULE --flag=...`), for
+    the results files that record what made them."""
+    return " ".join([_prog(), *(shlex.quote(a) for a in sys.argv[1:])])
 
 
 def fail(message: str) -> NoReturn:

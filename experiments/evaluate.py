@@ -13,8 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import shlex
-import sys
 import time
 
 T_START = time.perf_counter()  # the summary's wall time counts the imports below (JAX, MuJoCo)
@@ -98,7 +96,7 @@ def main(argv):
         timing["cost_table"] = {"options": table.options, "fixed_ms": table.fixed_ms, "round_ms": table.round_ms,
                                 "ceiling_ar_over_prefill": table.ceiling}
 
-    made = results_io.provenance("python -m experiments.evaluate " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
+    made = results_io.provenance(cli.command_line())
 
     def write(results):
         summary = ev.summarize(env.tasks, results)

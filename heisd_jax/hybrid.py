@@ -417,12 +417,12 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     if auto:
         fill.update({f"budget_{o.name}": (option == i).astype(jnp.float32)
                      for i, o in enumerate(budget_lib.options(hcfg.budget, hcfg.mode))})
-        tokens, stats, bstate = compact_rows(
-            lambda r, sk: decode_auto(params, cfg, hcfg, bstate, option, *r, sk),
-            (obs, cand, valid, use_retrieval), skip, cand[:, 0], hcfg.row_buckets, fill)
+        run = lambda r, sk: decode_auto(params, cfg, hcfg, bstate, option, *r, sk)  # noqa: E731
     else:
-        tokens, stats = compact_rows(lambda r, sk: decode(params, cfg, hcfg, *r, sk),
-                                     (obs, cand, valid, use_retrieval), skip, cand[:, 0], hcfg.row_buckets, fill)
+        run = lambda r, sk: decode(params, cfg, hcfg, *r, sk)  # noqa: E731
+    tokens, stats, *new_budget = compact_rows(run, (obs, cand, valid, use_retrieval), skip, cand[:, 0],
+                                              hcfg.row_buckets, fill)
+    bstate = new_budget[0] if auto else bstate
     actions = tok.decode(tokens)
     whole = stats["retrieval_whole"] > 0
     if hcfg.recent_candidates:
