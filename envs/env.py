@@ -105,6 +105,10 @@ class TabletopEnv:
 
     # ---- reset --------------------------------------------------------------------------
     def reset(self, rng: jax.Array, task_id: jnp.ndarray) -> EnvState:
+        with physics.summation_order(self.config.physics):  # the forward pass and Jacobians below
+            return self._reset(rng, task_id)
+
+    def _reset(self, rng: jax.Array, task_id: jnp.ndarray) -> EnvState:
         data, info = self.initial_data(rng, task_id)
         data = mjx.forward(self.model, data)
         kin = proprio.ee_kinematics(self.model, data, self.ids, jnp.zeros(3), scene.CONTROL_DT)
@@ -181,6 +185,10 @@ class TabletopEnv:
     def step(self, state: EnvState, action: jnp.ndarray) -> EnvState:
         """Advances one control step (scene.N_SUBSTEPS physics steps). Actions are clipped
         to [-1, 1]; a non-finite action fails the episode."""
+        with physics.summation_order(self.config.physics):  # IK, physics, kinematics, Jacobians
+            return self._step(state, action)
+
+    def _step(self, state: EnvState, action: jnp.ndarray) -> EnvState:
         invalid = ~jnp.all(jnp.isfinite(action))
         action = jnp.where(invalid, 0.0, action)
         target = ik.action_to_ctrl(self.model, state.data, self.ids, action, self.config.control)

@@ -9,13 +9,30 @@ force does not depend on the velocity. MJX's JAX implementation (mujoco-mjx 3.17
 saturated joint that MuJoCo C does not, and the two drift apart from the first clamped step on
 (`envs.physics_agreement` measures it). `clamp_aware_implicit=True` gives MJX MuJoCo C's rule;
 the default keeps MJX's, the physics the shipped policies were trained and evaluated under.
+
+Summation order (`fixed_order_sums`, on by default). MJX sums each body's children into its
+parent (`mujoco/mjx/_src/scan.py: body_tree`, used by the Jacobians, com_pos, crb and rne) with
+`jax.ops.segment_sum`, a scatter-add whose indices repeat wherever a body has several children
+(the world body's: the table, the arm base, the objects; the hand's two fingers). On a GPU,
+XLA runs such a scatter-add with atomic adds, so the order of the float additions, and with
+it the last bit of the result, can change from run to run; contacts then amplify it into
+different episodes. These are the only scatter-adds with repeated indices in the env's step
+(`tests/test_physics.py` pins it). With `fixed_order_sums` they are replaced, while MJX traces,
+by gathers of each parent's children added in ascending order: no atomics, the same order
+every run, the same sums up to float rounding (on CPU the joints differ from MJX's own by
+~1e-8 after 30 physics steps). Whether this alone makes two GPU evaluations identical is
+not yet measured (docs/evaluator.md).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import functools
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 import mujoco
 from mujoco import mjx
 from mujoco.mjx._src import forward as mjx_forward  # MJX's own implicitfast integrator step
@@ -32,6 +49,8 @@ class PhysicsConfig:
     # implicitfast only: leave a clamped servo's velocity derivative out of the implicit step,
     # as MuJoCo C does (False: MJX's own rule, which keeps it).
     clamp_aware_implicit: bool = False
+    # MJX's sums over a body's children in a fixed order (no scatter-add atomics on a GPU).
+    fixed_order_sums: bool = True
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
@@ -49,9 +68,59 @@ def clamped(m: mjx.Model, force: jnp.ndarray) -> jnp.ndarray:
     return jnp.asarray(m.actuator_forcelimited, bool) & ((force <= lo) | (force >= hi))
 
 
+def fixed_order_segment_sum(data: jnp.ndarray, segment_ids: np.ndarray, num_segments: int) -> jnp.ndarray:
+    """`jax.ops.segment_sum` for segment ids known when tracing (a numpy array): each segment's
+    rows gathered and added in ascending row order, with no scatter (rows with an id outside
+    [0, num_segments) are dropped, as segment_sum drops them)."""
+    ids = np.asarray(segment_ids)
+    members = [np.flatnonzero(ids == s) for s in range(num_segments)]
+    width = max((len(m) for m in members), default=0)
+    if width == 0:
+        return jnp.zeros((num_segments, *data.shape[1:]), data.dtype)
+    rows = np.full((num_segments, width), data.shape[0])  # data.shape[0]: the zero row appended below
+    for s, m in enumerate(members):
+        rows[s, :len(m)] = m
+    x = jnp.concatenate([data, jnp.zeros((1, *data.shape[1:]), data.dtype)])
+    out = x[rows[:, 0]]
+    for k in range(1, width):
+        out = out + x[rows[:, k]]
+    return out
+
+
+def _segment_sum(original, data, segment_ids, num_segments=None, *args, **kwargs):
+    if isinstance(segment_ids, np.ndarray) and num_segments is not None and not args and not kwargs:
+        return fixed_order_segment_sum(data, segment_ids, num_segments)
+    return original(data, segment_ids, num_segments, *args, **kwargs)
+
+
+@contextlib.contextmanager
+def summation_order(cfg: PhysicsConfig = PhysicsConfig()):
+    """While MJX code is traced inside it (with `cfg.fixed_order_sums`), `jax.ops.segment_sum`
+    over static segment ids, MJX's sum over a body's children, runs as
+    `fixed_order_segment_sum`. Re-entrant; patches only tracing, not the compiled program's
+    callers (the compiled program keeps whatever was traced)."""
+    current = jax.ops.segment_sum
+    if not cfg.fixed_order_sums or getattr(current, "_fixed_order", False):
+        yield
+        return
+    patched = functools.partial(_segment_sum, current)
+    patched._fixed_order = True
+    jax.ops.segment_sum = patched
+    try:
+        yield
+    finally:
+        jax.ops.segment_sum = current
+
+
 def step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> mjx.Data:
     """One physics step: `mjx.step`, or with `cfg.clamp_aware_implicit` under implicitfast,
-    MJX's forward dynamics and implicit step with the clamped servos' velocity terms zeroed."""
+    MJX's forward dynamics and implicit step with the clamped servos' velocity terms zeroed;
+    MJX's sums over a body's children in `cfg`'s order (`summation_order`)."""
+    with summation_order(cfg):
+        return _step(m, d, cfg)
+
+
+def _step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig) -> mjx.Data:
     if not (cfg.clamp_aware_implicit and cfg.integrator == "implicitfast"):
         return mjx.step(m, d)
     d = mjx.forward(m, d)

@@ -44,6 +44,9 @@ for _name in method_flags.define():  # --top_k, --budget, ...: every field of th
 flags.DEFINE_bool("clamp_aware_implicit", physics.PhysicsConfig.clamp_aware_implicit,
                   "Physics: leave a servo clamped at its force limit out of implicitfast's damping, as MuJoCo C "
                   "does (envs/physics.py); off: MJX's own rule, under which the shipped policies were trained.")
+flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
+                  "Physics: MJX's sums over a body's children in a fixed order, no scatter-add atomics on a GPU "
+                  "(envs/physics.py); off: MJX's own segment_sum.")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                     "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
@@ -62,7 +65,8 @@ def main(argv):
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
-    env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit)
+    env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit,
+                                        fixed_order_sums=FLAGS.fixed_order_sums)
     if env_physics != physics.PhysicsConfig():  # recorded where it differs (older results files have no key)
         settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}

@@ -1,0 +1,93 @@
+"""MJX's sums over a body's children in a fixed order (envs/physics.py, `fixed_order_sums`):
+the same sums as `jax.ops.segment_sum`, no scatter-add with repeated indices left in the
+env's traced step (on a GPU such a scatter-add runs with atomics, in an order that changes
+from run to run), and on CPU the same physics up to float rounding."""
+
+import collections
+
+import jax
+import jax.extend
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from envs import physics, tasks
+from envs.env import EnvConfig, TabletopEnv
+
+
+def test_fixed_order_segment_sum_equals_segment_sum():
+    rng = np.random.default_rng(0)
+    ids = np.array([0, 2, 2, 0, 2, 5, 4, 2])  # repeats, an empty segment (1, 3), an id out of range (5)
+    data = jnp.asarray(rng.normal(size=(8, 3, 2)), jnp.float32)
+    got = physics.fixed_order_segment_sum(data, ids, 5)
+    want = jax.ops.segment_sum(data, ids, 5)
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+    assert got.shape == (5, 3, 2) and not np.any(got[1]) and not np.any(got[3])
+    assert not np.any(physics.fixed_order_segment_sum(data, np.full(8, 9), 2))  # every id out of range
+
+
+def test_summation_order_patches_only_static_ids_and_restores():
+    original = jax.ops.segment_sum
+    with physics.summation_order():
+        with physics.summation_order():  # re-entrant
+            assert jax.ops.segment_sum is not original
+        assert jax.ops.segment_sum is not original
+        traced = jnp.asarray([0, 1, 1])  # ids only known at run time: segment_sum itself
+        np.testing.assert_allclose(jax.ops.segment_sum(jnp.ones(3), traced, 2), [1.0, 2.0])
+    assert jax.ops.segment_sum is original
+    with physics.summation_order(physics.PhysicsConfig(fixed_order_sums=False)):
+        assert jax.ops.segment_sum is original
+
+
+def _scatter_adds(fn, *args) -> collections.Counter:
+    """Scatter-adds in fn's jaxpr (nested jaxprs included), by the innermost MJX source file
+    that made them ('' if none)."""
+    out = collections.Counter()
+
+    def walk(jaxpr):
+        for e in jaxpr.eqns:
+            if e.primitive.name == "scatter-add":
+                tb = e.source_info.traceback
+                files = [f.file_name for f in (tb.frames if tb else []) if "mjx/_src/" in f.file_name]
+                out[files[0].split("mjx/_src/")[-1] if files else ""] += 1
+            for sub in jax.extend.core.jaxprs_in_params(e.params):
+                walk(sub)
+
+    walk(jax.make_jaxpr(fn)(*args).jaxpr)
+    return out
+
+
+@pytest.fixture(scope="module")
+def envs_and_state():
+    task = tasks.get_tasks("spatial", ["left_block_plate"])
+    fixed = TabletopEnv(task, EnvConfig(render=False))
+    atomic = TabletopEnv(task, EnvConfig(render=False, physics=physics.PhysicsConfig(fixed_order_sums=False)))
+    state = jax.jit(fixed.reset)(jax.random.PRNGKey(3), jnp.int32(0))
+    return fixed, atomic, state
+
+
+def test_no_body_tree_scatter_add_left_in_the_env_step(envs_and_state):
+    fixed, atomic, state = envs_and_state
+    action = jnp.full((7,), 0.3)
+    tree_sums = lambda counts: sum(n for where, n in counts.items() if where == "scan.py")
+    assert tree_sums(_scatter_adds(atomic.step, state, action)) > 0  # MJX's own: repeated indices
+    left = _scatter_adds(fixed.step, state, action)
+    assert tree_sums(left) == 0
+    # What is left: math.axis_angle_to_quat's jnp.insert, one update per element. A new entry
+    # here is a new MJX scatter-add: check whether its indices repeat.
+    assert set(left) == {"math.py"}, left
+    assert tree_sums(_scatter_adds(fixed.reset, jax.random.PRNGKey(0), jnp.int32(0))) == 0
+
+
+def test_fixed_order_physics_equals_mjx_own_up_to_rounding(envs_and_state):
+    fixed, atomic, state = envs_and_state
+    actions = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (3, 7)), jnp.float32)
+
+    def roll(env):
+        return jax.jit(lambda s, a: jax.lax.scan(lambda s, u: (env.step(s, u), None), s, a)[0])(state, actions)
+
+    a, b = roll(fixed), roll(atomic)
+    # 30 physics steps; the sums' order differs from XLA's scatter by rounding (1.5e-8 measured).
+    np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
+    assert not np.array_equal(a.data.qpos, np.asarray(state.data.qpos))  # the arm moved
