@@ -151,8 +151,20 @@ class HeiSDSettings(RetrievalSettings):
                                          "strict unless given).", ACTION_RULES)
     recent_candidates: int = _setting(4, "The env's own last executed actions verified as further candidates "
                                       "each retrieval step (our design).")
-    skip: bool = _setting(True, "Verify-skip: a confident retrieval-mode row executes its top candidate without a "
-                          "target pass (off with strict acceptance or n_candidates=0, unless given).")
+    skip: bool = _setting(True, "Verify-skip: a confident retrieval-mode row executes a candidate without a target "
+                          "pass (off with strict acceptance, or without the candidates its source needs, unless "
+                          "given).")
+    skip_source: str = _setting("recent", "Verify-skip: what a skipped step executes: the env's last action again "
+                                "(recent), or the datastore's top candidate (retrieval, HEISD.md; rarely confident "
+                                "enough to fire on the shipped stack).", SKIP_SOURCES)
+    n_confirm: int = _setting(1, "Verify-skip from recent actions: the last this many verified steps each accepted "
+                              "their previous action whole.")
+    k_skip: int = _setting(2, "Verify-skip: at most this many consecutive skipped target passes (longer runs of "
+                           "repeated actions cost closed-loop success).")
+    r_max: int = _setting(9, "seq_relaxed: no token further than this many bins from the target's (the paper's 15 "
+                          "costs closed-loop success on our suites).")
+    r_seq: int = _setting(24, "seq_relaxed: bound on the cumulative bin distance of the accepted prefix (the "
+                          "paper: 42).")
     budget: str = _setting("auto", "Draft budget chosen per step from measured costs (auto) or the one fixed tree "
                            "(fixed).", BUDGETS)
 
@@ -217,8 +229,9 @@ def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hy
         for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
             if key not in given:
                 s[key] = value
-    if s["n_candidates"] == 0 and s["skip_source"] == "retrieval" and "skip" not in given:
-        s["skip"] = False  # verify-skip from retrieval needs the datastore's candidates
+    if "skip" not in given and ((s["n_candidates"] == 0 and s["skip_source"] == "retrieval")
+                                or (s["recent_candidates"] == 0 and s["skip_source"] == "recent")):
+        s["skip"] = False  # verify-skip needs its source's candidates: the datastore's, or the recent actions
     cal = calibration or {}
     spec = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
     skip = acceptance.SkipConfig(enabled=s["skip"], source=s["skip_source"], n_confirm=s["n_confirm"],

@@ -280,7 +280,10 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     with pytest.raises(ValueError, match="switch skip off"):
         methods.check_settings("heisd", {"acceptance": "strict", "skip": True})
     assert methods.hybrid_config("heisd", {"acceptance": "strict"}).lossless
-    assert not methods.hybrid_config("heisd", {"n_candidates": 0}).skip.enabled  # skip needs the datastore
+    # Verify-skip needs its source's candidates: off without them unless asked for.
+    assert not methods.hybrid_config("heisd", {"n_candidates": 0, "skip_source": "retrieval"}).skip.enabled
+    assert not methods.hybrid_config("heisd", {"recent_candidates": 0}).skip.enabled
+    assert methods.hybrid_config("heisd", {"n_candidates": 0}).skip.enabled  # the recent actions remain
     assert not methods.hybrid_config("heisd", {}).lossless
     with pytest.raises(ValueError, match="unknown settings \\['top_k'\\]; valid: dtype"):
         methods.check_settings("ar", {"top_k": 4})
