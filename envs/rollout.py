@@ -43,11 +43,14 @@ def per_env(name: str, init: Callable[[EnvState], Any], act: Callable[[EnvState,
     return Policy(name=name, init=lambda params, states: jax.vmap(init)(states), act=act_b)
 
 
-def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int = 0):
+def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int = 0,
+           reset: Callable | None = None):
+    """Reset envs and policy state for episodes (keys [B, 2], task_ids [B]); `reset` is the
+    batched env reset (default `vmap(env.reset)`)."""
     reset_keys, act_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
     if seed:  # a Python int: seed 0 keeps the historical keys
         act_keys = jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys)
-    state = jax.vmap(env.reset)(reset_keys, task_ids)
+    state = (reset or jax.vmap(env.reset))(reset_keys, task_ids)
     return state, policy.init(policy.params, state), act_keys
 
 
@@ -182,9 +185,16 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     control steps the loop ran."""
     n_queue, s = keys.shape[0], num_slots
     r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
-    first = jnp.zeros((s,), jnp.int32)
-    shapes = jax.eval_shape(lambda k, t: _start(env, policy, k, t, seed), keys[first], task_ids[first])
-    state, pstate, act_keys = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), shapes)  # overwritten, never stepped
+    # The slots' template (overwritten, never stepped) takes its shapes from the refill's own
+    # jitted reset, whose trace JAX reuses for the refill's inputs of the same shapes: MJX's
+    # reset, a large share of the tracing time, is traced once.
+    reset = jax.jit(jax.vmap(env.reset))
+    some = jnp.zeros((r,), jnp.int32)  # r rows, as the refill takes them (same shapes and shardings)
+    state, _, _ = jax.eval_shape(lambda k, t: _start(env, policy, k, t, seed, reset), keys[some], task_ids[some])
+    state = jax.tree.map(lambda x: jnp.zeros((s,) + x.shape[1:], x.dtype), state)  # every leaf is per env
+    pstate = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
+                          jax.eval_shape(lambda st: policy.init(policy.params, st), state))
+    act_keys = jnp.zeros((s,) + keys.shape[1:], keys.dtype)
     slot_ep = jnp.full((s,), n_queue, jnp.int32)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
     results = jax.tree.map(lambda x: jnp.zeros((n_queue,), x.dtype), EpisodeResults.of(state, totals))
@@ -201,7 +211,7 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         take = (rows < s) & (eps < n_valid)
         rows = jnp.where(take | (blank < s), rows, s)
         idx = jnp.minimum(eps, n_queue - 1)
-        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed)
+        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed, reset)
         s2 = s2.replace(done=s2.done | ~take)
         state = _rows_set(rows, s2, state, s)
         pstate = _rows_set(rows, p2, pstate, s, shared_too=blank == 0)
