@@ -23,12 +23,14 @@ def write_json_atomic(path: str | os.PathLike, obj) -> None:
 
 def provenance(command: str) -> dict:
     """What a results file records about its making: the command, the repository's short
-    commit (None outside a git checkout), the first device's kind and the date."""
+    commit ($HEISD_COMMIT if set, for a copied tree whose .git is not its own; else git's;
+    None outside a git checkout), the first device's kind and the date."""
     import jax  # noqa: PLC0415
 
+    commit = os.environ.get("HEISD_COMMIT") or None
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
+        commit = commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
+                                          cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
     except OSError:
         commit = None
     return {"command": command, "commit": commit, "device": jax.devices()[0].device_kind,

@@ -42,3 +42,9 @@ def test_provenance_names_command_commit_device_and_date():
                           cwd=Path(__file__).resolve().parents[1]).stdout.strip() or None
     assert rec["command"] == "python -m experiments.x --a=1" and rec["commit"] == head
     assert rec["device"] and re.fullmatch(r"\d{4}-\d{2}-\d{2}", rec["date"])
+
+
+def test_provenance_takes_the_commit_from_the_environment(monkeypatch):
+    """A tree copied to another machine with a stale .git records the commit it was given."""
+    monkeypatch.setenv("HEISD_COMMIT", "abc1234")
+    assert results_io.provenance("x")["commit"] == "abc1234"
