@@ -112,6 +112,17 @@ def summation_order(cfg: PhysicsConfig = PhysicsConfig()):
         jax.ops.segment_sum = current
 
 
+def poses(m: mjx.Model, d: mjx.Data) -> mjx.Data:
+    """The part of MJX's forward pass that a reset state's observations read: body, site,
+    geom and camera poses (`kinematics`, `camlight`) and the com frames Jacobians use
+    (`com_pos`: cdof, subtree_com). No collision, constraints or dynamics: every step's own
+    forward pass recomputes those from qpos and qvel (the solver's warm start,
+    qacc_warmstart, is not a forward output), so the step after gives the same state as
+    after a full `mjx.forward`, and the reset traces and compiles no second copy of the
+    collision and constraint code."""
+    return mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
+
+
 def step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> mjx.Data:
     """One physics step: `mjx.step`, or with `cfg.clamp_aware_implicit` under implicitfast,
     MJX's forward dynamics and implicit step with the clamped servos' velocity terms zeroed;

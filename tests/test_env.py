@@ -73,6 +73,25 @@ def test_step_is_deterministic(compiled):
         np.testing.assert_array_equal(x, y)
 
 
+def test_reset_runs_only_the_pose_stage_of_the_forward_pass(compiled):
+    """A reset computes poses (kinematics, com frames, cameras), not MJX's whole forward pass:
+    the poses equal a full `mjx.forward`'s, and the state one step later is the one a fully
+    forwarded reset state steps to (the step's own forward pass recomputes the rest)."""
+    s = compiled.start([5, 33])
+    fwd = jax.jit(jax.vmap(lambda d: mjx.forward(compiled.env.model, d)))(s.data)
+    for name in ("xpos", "xmat", "site_xpos", "site_xmat", "geom_xpos", "geom_xmat", "cam_xpos", "cdof", "subtree_com"):
+        np.testing.assert_allclose(getattr(s.data, name), getattr(fwd, name), rtol=0, atol=1e-6, err_msg=name)
+    # The full pass's other outputs (velocity, actuation, dynamics, contacts and constraints)
+    # on the same poses (another compiled program would round them differently).
+    rest = ("qacc", "qfrc_bias", "qfrc_passive", "qfrc_actuator", "actuator_force", "actuator_length", "qfrc_smooth",
+            "qacc_smooth", "qfrc_constraint", "cvel", "cdof_dot", "ten_length", "sensordata", "_impl")
+    full = s.replace(data=s.data.replace(**{name: getattr(fwd, name) for name in rest}))
+    assert not np.allclose(s.data.qfrc_bias, full.data.qfrc_bias)  # the reset really skipped the dynamics
+    a = jnp.array([[0.8, 0.0, -0.5, 0.0, 0.0, 0.3, -1.0], [-0.4, 0.6, 0.0, 0.2, 0.0, 0.0, 1.0]])
+    for x, y in zip(jax.tree.leaves(compiled.step(s, a)), jax.tree.leaves(compiled.step(full, a))):
+        np.testing.assert_array_equal(x, y)
+
+
 def test_vmapped_batch_equals_envs_stepped_one_at_a_time(compiled):
     s = compiled.start([5, 33])
     a = jnp.array([[0.8, 0.0, -0.5, 0.0, 0.0, 0.3, -1.0], [-0.4, 0.6, 0.0, 0.2, 0.0, 0.0, 1.0]])
