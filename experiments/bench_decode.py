@@ -22,8 +22,6 @@ over AR measured in the same run:
 
 from __future__ import annotations
 
-import json
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -33,7 +31,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos, language
 from heisd_jax.timing import median_seconds
-from heisd_jax import checkpoint, data, spec_decode, vla
+from heisd_jax import checkpoint, data, results_io, spec_decode, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -127,9 +125,8 @@ def main(argv):
                   f"{sp['speedup_vs_ar']:.2f}x AR  target passes/action {sp['target_passes_per_action']:.2f}  "
                   f"AL {sp['tokens_per_target_pass']:.2f}  identical to AR {sp['identical_to_ar']:.2f}", flush=True)
     if FLAGS.out:
-        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        with open(FLAGS.out, "w") as f:
-            json.dump({"device": device.device_kind, "dtype": cfg.dtype, "jax": jax.__version__, "rows": rows}, f, indent=1)
+        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "dtype": cfg.dtype,
+                                                 "jax": jax.__version__, "rows": rows})
 
 
 if __name__ == "__main__":

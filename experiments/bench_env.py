@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +23,7 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import robot, scene
 from envs.env import EnvConfig, TabletopEnv
 from envs.ik import ControlConfig
+from heisd_jax import results_io
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -117,8 +117,8 @@ def main(argv):
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
         print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{r['ctrl_steps_per_s'] / base:>10.2f}")
     if FLAGS.out:
-        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(FLAGS.out).write_text(json.dumps({"device": device, "rows": rows}, indent=1))
+        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
+                                                 "rows": rows})
 
 
 if __name__ == "__main__":

@@ -160,7 +160,8 @@ def main(argv):
         print(f"  {label}: {row['episodes_per_s']:.3f} episodes/s ({row['x_sequential']:.2f}x sequential{scale})",
               flush=True)
         if FLAGS.out:
-            results_io.write_json_atomic(FLAGS.out, {"settings": settings, "device": device, "jax": jax.__version__,
+            results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
+                                                      "settings": settings, "device": device, "jax": jax.__version__,
                                                       "tasks": [t.name for t in task_list], "rows": rows})
 
     if FLAGS.compile_only:

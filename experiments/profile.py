@@ -23,9 +23,7 @@ a `jax.profiler` trace of a few steps (TensorBoard / Perfetto).
 
 from __future__ import annotations
 
-import json
 import time
-from pathlib import Path
 
 from absl import app, flags, logging
 
@@ -36,7 +34,7 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import hybrid, methods, retrieval, spec_decode as sd, timing, vla, vla_policy
+from heisd_jax import hybrid, methods, results_io, retrieval, spec_decode as sd, timing, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -180,11 +178,10 @@ def main(argv):
     if FLAGS.trace_dir:
         print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
     if FLAGS.out:
-        Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(FLAGS.out).write_text(json.dumps({"method": FLAGS.method, "settings": settings, "batch": FLAGS.batch,
-                                               "steps": FLAGS.steps, "device": jax.devices()[0].device_kind,
-                                               "median_ms": med, "per_action": per_action, "breakdown_ms": breakdown,
-                                               "speedup_vs_ar": speedup}, indent=1))
+        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
+                                                 "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
+                                                 "median_ms": med, "per_action": per_action,
+                                                 "breakdown_ms": breakdown, "speedup_vs_ar": speedup})
 
 
 if __name__ == "__main__":

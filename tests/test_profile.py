@@ -22,6 +22,7 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
                 "--steps=4", f"--trace_dir={tmp_path / 'trace'}", f"--out={tmp_path / 'p.json'}"])
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads((tmp_path / "p.json").read_text())
+    assert "experiments.profile" in r["command"] and r["device"] and r["date"]  # the file says how it was made
     for part in ("act", "ar", "prefill", "prefill+cand", "retrieval", "draft_round", "verify_round", "env_step"):
         assert r["median_ms"][part] > 0, part
     # The speedup is AR's median over the method's (a ratio of this run's own figures); the
