@@ -22,7 +22,6 @@ over AR measured in the same run:
 
 from __future__ import annotations
 
-
 import jax
 import jax.numpy as jnp
 import numpy as np

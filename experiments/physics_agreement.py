@@ -22,7 +22,6 @@ camera off.
 from __future__ import annotations
 
 import json
-import sys
 import time
 
 from absl import app, flags, logging
@@ -155,7 +154,7 @@ def main(argv):
             old = json.load(open(FLAGS.out))
         except (OSError, ValueError):
             old = {"runs": []}
-        old["runs"].append({**results_io.provenance("python -m experiments.physics_agreement " + " ".join(sys.argv[1:])),
+        old["runs"].append({**results_io.provenance(cli.command_line()),
                             "rows": rows})
         results_io.write_json_atomic(FLAGS.out, old)
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import itertools
 import json
 import os
-import subprocess
 import time
 from pathlib import Path
 
@@ -55,14 +54,10 @@ def parse_methods(spec: str) -> list[tuple[str, dict]]:
 
 
 def _provenance() -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True,
-                                cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
-    except OSError:
-        commit = None
     import flax  # noqa: PLC0415
 
-    return {"git_commit": commit, "device": jax.devices()[0].device_kind, "n_devices": jax.device_count(),
+    return {"git_commit": results_io.commit(short=False), "device": jax.devices()[0].device_kind,
+            "n_devices": jax.device_count(),
             "versions": {"jax": jax.__version__, "flax": flax.__version__, "mujoco": mujoco.__version__}}
 
 

@@ -21,19 +21,24 @@ def write_json_atomic(path: str | os.PathLike, obj) -> None:
     os.replace(tmp, path)
 
 
+def commit(short: bool = True) -> str | None:
+    """The repository's commit: $HEISD_COMMIT if set (a tree copied to another machine, whose
+    .git is not its own), else git's HEAD (short or full hash); None outside a git checkout."""
+    if os.environ.get("HEISD_COMMIT"):
+        return os.environ["HEISD_COMMIT"]
+    try:
+        return subprocess.run(["git", "rev-parse", *(["--short"] if short else []), "HEAD"], capture_output=True,
+                              text=True, cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
+    except OSError:
+        return None
+
+
 def provenance(command: str) -> dict:
-    """What a results file records about its making: the command, the repository's short
-    commit ($HEISD_COMMIT if set, for a copied tree whose .git is not its own; else git's;
-    None outside a git checkout), the first device's kind and the date."""
+    """What a results file records about its making: the command, the short `commit`, the
+    first device's kind and the date."""
     import jax  # noqa: PLC0415
 
-    commit = os.environ.get("HEISD_COMMIT") or None
-    try:
-        commit = commit or subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                          cwd=Path(__file__).resolve().parents[1], timeout=10).stdout.strip() or None
-    except OSError:
-        commit = None
-    return {"command": command, "commit": commit, "device": jax.devices()[0].device_kind,
+    return {"command": command, "commit": commit(), "device": jax.devices()[0].device_kind,
             "date": time.strftime("%Y-%m-%d")}
 
 
