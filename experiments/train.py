@@ -63,9 +63,10 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
     """Optimizer steps with logging, periodic checkpoints and the time budget; resumable."""
     t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
     key = jax.random.PRNGKey(cfg.seed + 1)
-    while int(state.step) < cfg.steps:
+    s = int(state.step)  # counted on the host: reading state.step would wait for every step
+    while s < cfg.steps:
         state, m = step_fn(state, key)
-        s = int(state.step)
+        s += 1
         out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
         if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
             rec = {"step": s, **record_fn(state, m, s), "elapsed_s": round(time.perf_counter() - t0, 1)}

@@ -78,7 +78,7 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
                 label_sigma_bins: float = 0.0):
     """Mean cross-entropy of the action tokens given the prompt and the previous tokens, and
     metrics per action dimension [7]: greedy token accuracy and mean absolute bin error."""
-    logits, _ = vla.forward(params, model_cfg, obs, tokens)
+    logits, _ = vla.forward(params, model_cfg, obs, tokens, training=True)
     p = model_cfg.prompt_len
     pred = vla.action_logits(model_cfg, logits[:, p - 1: p - 1 + ACTION_DIM])  # [B, 7, 256]
     target = tokens - model_cfg.first_action_id

@@ -138,3 +138,15 @@ def test_random_shift_moves_each_view_on_its_own():
     assert (out[:, :, :8] == 0).all() and (out[:, :, 8:] == 255).all()  # no view bleeds into the other
     whole = np.asarray(data.random_shift(jnp.asarray(img), jax.random.PRNGKey(0), 3))
     assert not ((whole[:, :, :8] == 0).all() and (whole[:, :, 8:] == 255).all())
+
+
+def test_training_forward_is_the_inference_forward(model):
+    """The training variant (unrolled layers; cuDNN attention only on a GPU in half precision)
+    computes the same logits and hidden states as the forward the decoding API is pinned to."""
+    params, f = model
+    obs = _obs(1)
+    toks = jnp.full((B, 7), CFG.first_action_id + 5, jnp.int32)
+    ref_logits, ref_hidden = f["forward"](params, obs, toks)
+    logits, hidden = jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t, training=True))(params, obs, toks)
+    np.testing.assert_allclose(logits, ref_logits, atol=1e-4)
+    np.testing.assert_allclose(hidden, ref_hidden, atol=1e-4)
