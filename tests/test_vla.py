@@ -141,8 +141,8 @@ def test_random_shift_moves_each_view_on_its_own():
 
 
 def test_training_forward_is_the_inference_forward(model):
-    """The training variant (unrolled layers; cuDNN attention only on a GPU in half precision)
-    computes the same logits and hidden states as the forward the decoding API is pinned to."""
+    """The training variant (unrolled layers) computes the same logits and hidden states as
+    the forward the decoding API is pinned to."""
     params, f = model
     obs = _obs(1)
     toks = jnp.full((B, 7), CFG.first_action_id + 5, jnp.int32)
