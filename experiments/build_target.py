@@ -3,7 +3,7 @@ VLA trained on them -> DAgger rounds (the VLA drives, the expert labels, the agg
 trained on) -> the closed-loop evaluation -> the drafter -> the retrieval datastore -> the
 boundary calibration; optionally installs the results as the shipped checkpoints.
 
-  python -m experiments.build_target --work=runs/target             # on one GPU
+  python -m experiments.build_target --work=runs/target             # on one GPU, ~30 minutes
   python -m experiments.build_target --work=runs/target --install   # ... and copy to checkpoints/
 
 Each stage is one of the project's own commands (collect_demos, train, evaluate,
@@ -37,30 +37,30 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, logs, build.json).")
-flags.DEFINE_integer("demo_episodes", 75, "Expert episodes attempted per task.")
+flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
-flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
+flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
                   "the episodes per task in the demonstrations and every DAgger round (e.g. spatial:2,long:2); a "
                   "task's own weight overrides its suite's; others 1.")
 flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
                     "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
                     "up to 4x); a task named in --suite_weights keeps the weight given there.")
-flags.DEFINE_list("beta", ["0"], "DAgger: probability of executing the expert's action per step, one value per "
+flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
-flags.DEFINE_integer("steps", 12000, "Optimizer steps of the first policy (with --start: of training it further on "
+flags.DEFINE_integer("steps", 6000, "Optimizer steps of the first policy (with --start: of training it further on "
                      "the demonstrations; 0: use it as it is).")
-flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning.")
+flags.DEFINE_integer("dagger_steps", 3000, "Optimizer steps of each DAgger round's fine-tuning.")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
 flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every training stage (Gaussian targets of this "
                    "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target).")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
-flags.DEFINE_integer("drafter_steps", 4000, "Drafter optimizer steps.")
-flags.DEFINE_integer("drafter_rollout_episodes", 25, "Episodes per task in which the final target drives alone "
+flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
+flags.DEFINE_integer("drafter_rollout_episodes", 10, "Episodes per task in which the final target drives alone "
                      "(beta 0), added to the drafter's training states so it learns to predict the target where the "
                      "target itself goes; 0: none (the drafter sees the demonstrations and DAgger rounds only).")
 flags.DEFINE_integer("num_envs", 1000, "Parallel envs for collection and evaluation.")
