@@ -235,6 +235,7 @@ def main(argv):
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
             if policy.meta.get("cost_table") is not None:
                 row["cost_table"] = dataclasses.asdict(policy.meta["cost_table"])
+                row["runs_as_ar"] = bool(policy.meta.get("runs_as_ar", False))
             rows.append(row)
             shares = ""
             if "skipped" in stats_all:

@@ -99,7 +99,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     meta = policy.meta
     hcfg = meta.get("hcfg")
-    fns = component_fns(meta, FLAGS.method)
+    fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method)  # HeiSD where no option beats AR
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params

@@ -182,6 +182,14 @@ def dominated(costs: Costs, opts: tuple[Option, ...], margin: float = 0.0) -> jn
     return (best_case * _handicap(opts, margin) >= costs.fixed_ms[0]) & (jnp.arange(len(opts)) > 0)
 
 
+def only_ar(costs: Costs, opts: tuple[Option, ...], margin: float = 0.0) -> bool:
+    """Whether every option but AR is `dominated`: the chooser would run AR on every step, and
+    the per-step work around it (the boundary, the keys, the choice, verify-skip) would only
+    add time (at large batch sizes the prefill alone is most of AR's decode). Evaluated on the
+    host, once per cost table."""
+    return bool(np.all(np.asarray(dominated(costs, opts, margin))[1:]))
+
+
 def predicted_ms(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retrieval,
                  margin: float = 0.0) -> jnp.ndarray:
     """Expected ms per action of each option [O], drafting options' times raised by `margin`

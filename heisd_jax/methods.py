@@ -327,6 +327,14 @@ def _build_hybrid(name: str):
             table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log,
                                                   measure=calibrate_costs)
             all_params["costs"] = table.costs()
+            opts = budget.options(hcfg.budget, hcfg.mode)
+            if hcfg.row_buckets == 1 and budget.only_ar(all_params["costs"], opts, hcfg.budget.margin):
+                # No option can beat AR at this batch size, and a skipped row saves nothing while
+                # its batch-mates decode: HeiSD is plain AR here, program and tokens.
+                log(f"{name}: at batch {batch_size} the cost table leaves no draft option that can beat AR by the "
+                    f"{hcfg.budget.margin:.0%} margin: decoding with plain AR")
+                policy = vla_policy.decoding_policy(name, params, cfg, tok, vla_policy.ar)
+                return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table, runs_as_ar=True))
         policy = vla_policy.hybrid_policy(name, all_params, cfg, tok, hcfg, key_spec, env.global_index)
         return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table))
     return build

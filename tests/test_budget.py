@@ -58,6 +58,10 @@ def test_a_drafting_option_must_win_by_the_margin():
     # best cases (priors 3 / 0 / 2 / 0 rounds): 1.15, 0.55, 0.95, 0.55 ms; x1.1 puts 0.95 above AR
     np.testing.assert_array_equal(np.asarray(budget.dominated(costs, OPTS, 0.1)), [False, True, False, True, False])
     np.testing.assert_array_equal(np.asarray(budget.dominated(costs, OPTS, 0.0)), [False, True, False, False, False])
+    # Only AR is left when every other option is dominated (then HeiSD decodes as plain AR).
+    assert not budget.only_ar(costs, OPTS, 0.1)
+    assert budget.only_ar(_costs([1.0, 1.2, 0.95, 1.2, 0.96], [0.1] * 5), OPTS, 0.1)  # best cases 1.5, .95, 1.4, .96
+    assert not budget.only_ar(_costs([1.0, 1.2, 0.95, 1.2, 0.96], [0.1] * 5), OPTS, 0.0)
     with pytest.raises(ValueError, match="margin"):
         budget.BudgetConfig(mode="auto", margin=1.0)
 

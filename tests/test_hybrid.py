@@ -287,3 +287,33 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     assert not methods.hybrid_config("heisd", {}).lossless
     with pytest.raises(ValueError, match="unknown settings \\['top_k'\\]; valid: dtype"):
         methods.check_settings("ar", {"top_k": 4})
+
+
+def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch):
+    """budget=auto with a cost table in which every draft option is dominated (as at batch 256
+    on an H100): the policy is AR's decode, so HeiSD cannot be slower than AR there; with a
+    table where drafting can win, and with row buckets (where a skip saves time), it is the
+    HeiSD step."""
+    from envs import tasks
+    from envs.env import TabletopEnv
+    from heisd_jax import budget, cost_model, methods, vla_policy
+
+    class Table:
+        def __init__(self, fixed):
+            self.fixed = fixed
+
+        def costs(self):
+            n = len(budget.options(methods.hybrid_config("heisd", {}).budget, "hybrid"))
+            return budget.Costs(fixed_ms=jnp.asarray([1.0] + [self.fixed] * (n - 1), jnp.float32),
+                                round_ms=jnp.full((n,), 0.5, jnp.float32))
+
+    env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
+    for fixed, buckets, as_ar in ((1.2, 1, True), (0.3, 1, False), (1.2, 4, False)):
+        monkeypatch.setattr(cost_model, "load_or_calibrate", lambda *a, fixed=fixed, **k: Table(fixed))
+        logs = []
+        policy = methods.make_policy("heisd", env, batch_size=256, log=logs.append, row_buckets=buckets)
+        assert policy.name == "heisd"
+        assert policy.meta.get("runs_as_ar", False) == as_ar, (fixed, buckets)
+        assert ("decoding with plain AR" in " ".join(logs)) == as_ar
+        if as_ar:
+            assert policy.act.__code__ is vla_policy.decoding_policy("ar", None, None, None, vla_policy.ar).act.__code__
