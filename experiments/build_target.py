@@ -41,8 +41,8 @@ flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
-flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
-                  "the episodes per task in the demonstrations and every DAgger round (e.g. spatial:2,long:2); a "
+flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or "
+                  "these tasks, get N times the episodes per task in the demonstrations and every DAgger round; a "
                   "task's own weight overrides its suite's; others 1.")
 flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
                     "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
