@@ -74,7 +74,9 @@ class ARSettings:
     dtype: str = _setting("float32", "Parameters and KV cache in this dtype.", DTYPES)
     matmul_precision: str = _setting(vla.VLAConfig.matmul_precision, "float32 matrix products: 'float32' in full "
                                      "float32 (the same tokens at every batch size), 'default' at XLA's choice (TF32 "
-                                     "tensor cores for some shapes on recent NVIDIA GPUs).", vla.MATMUL_PRECISIONS)
+                                     "tensor cores for some shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': "
+                                     "that tensor-core algorithm for every product, float32 accumulation.",
+                                     vla.MATMUL_PRECISIONS)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -60,8 +60,7 @@ class VLAConfig:
     cache_slots: int = 0  # 0: prompt_len + DRAFT_SLOTS (7 actions + the largest draft tree, with room to spare)
     rope_base: float = 10000.0
     dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
-    # Precision of float32 matrix products: "float32" (full, batch-invariant) or "default"
-    # (XLA's choice: TF32 tensor cores for some shapes on recent NVIDIA GPUs). Not used in bfloat16.
+    # Precision of float32 matrix products (MATMUL_PRECISIONS); not used in bfloat16.
     matmul_precision: str = "float32"
 
     @property
@@ -100,7 +99,14 @@ class VLAConfig:
             raise ValueError(f"cache_slots {self.cache_slots} < prompt {self.prompt_len} + {ACTION_DIM} actions")
 
 
-MATMUL_PRECISIONS = ("float32", "default")
+# How float32 matrix products run, by name -> the setting of `jax.default_matmul_precision`
+# (None: XLA's default). "float32": full float32 on every backend. "default": XLA's choice,
+# which on recent NVIDIA GPUs runs some shapes on TF32 tensor cores and others in float32, so
+# one state's logits differ between batch sizes. "tf32" (GPUs only) and "bf16": one pinned
+# algorithm for every product (TF32, or bfloat16 inputs), float32 accumulation: tensor-core
+# speed with the same kind of kernel at every shape.
+_PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32"}
+MATMUL_PRECISIONS = tuple(_PRECISION_SETTINGS)
 
 
 def at_config_precision(fn):
@@ -109,8 +115,11 @@ def at_config_precision(fn):
 
     @functools.wraps(fn)
     def wrapped(params, cfg: VLAConfig, *args, **kwargs):
-        full = cfg.matmul_precision == "float32" and jnp.dtype(cfg.dtype) == jnp.float32
-        with jax.default_matmul_precision("float32") if full else contextlib.nullcontext():
+        setting = _PRECISION_SETTINGS[cfg.matmul_precision] if jnp.dtype(cfg.dtype) == jnp.float32 else None
+        if setting == "TF32_TF32_F32" and jax.default_backend() != "gpu":
+            raise ValueError(f'matmul_precision "tf32" needs a GPU (the backend is {jax.default_backend()}); '
+                             f"valid here: {', '.join(p for p in MATMUL_PRECISIONS if p != 'tf32')}")
+        with jax.default_matmul_precision(setting) if setting else contextlib.nullcontext():
             return fn(params, cfg, *args, **kwargs)
 
     return wrapped

@@ -1,7 +1,8 @@
 """The target's and the drafter's matrix products run at VLAConfig.matmul_precision: in full
 float32 by default (so a state decodes to the same tokens at every batch size on GPUs whose
-default would use TF32 for some shapes), at XLA's choice with "default", and untouched in
-bfloat16; bad values are refused with the valid ones named."""
+default would use TF32 for some shapes), at XLA's choice with "default", with one pinned
+tensor-core algorithm with "bf16" (and "tf32", which needs a GPU), and untouched in bfloat16;
+bad values are refused with the valid ones named."""
 
 import dataclasses
 import re
@@ -37,11 +38,22 @@ def test_default_precision_and_bfloat16_leave_products_to_xla(change):
     assert not any("HIGHEST" in p for p in _products(dataclasses.replace(CFG, **change)))
 
 
+def test_bf16_pins_one_algorithm_for_every_product():
+    found = _products(dataclasses.replace(CFG, matmul_precision="bf16"), SPEC)
+    assert all("BF16_BF16_F32" in p for p in found)
+
+
+@pytest.mark.skipif(jax.default_backend() == "gpu", reason="TF32 runs on GPUs")
+def test_tf32_without_a_gpu_is_refused_before_tracing():
+    with pytest.raises(ValueError, match='"tf32" needs a GPU.*valid here: float32, default, bf16'):
+        _products(dataclasses.replace(CFG, matmul_precision="tf32"))
+
+
 def test_bad_precision_is_refused_with_the_valid_ones():
-    with pytest.raises(ValueError, match="float32, default"):
-        dataclasses.replace(CFG, matmul_precision="tf32")
+    with pytest.raises(ValueError, match="float32, default, tf32, bf16"):
+        dataclasses.replace(CFG, matmul_precision="fp8")
     with pytest.raises(ValueError, match="matmul_precision"):
-        methods.check_settings("ar", {"matmul_precision": "tf32"})
+        methods.check_settings("ar", {"matmul_precision": "fp8"})
 
 
 def test_method_setting_reaches_the_config():
