@@ -139,6 +139,8 @@ class RetrievalSettings(DrafterSettings):
                                     "option's estimate returns to its long-run mean (0: never).")
     budget_margin: float = _setting(_BUDGET.margin, "budget=auto: a drafting option must be predicted "
                                     "this much faster than AR to be chosen.")
+    budget_max_batch: int = _setting(_BUDGET.max_batch, "budget=auto: the largest batch size (rows per device) at "
+                                     "which drafting options run; above it the method decodes as plain AR.")
     row_buckets: int = _setting(_HYB.row_buckets, "Rows that need a target pass (not skipped) run gathered in the "
                                 "smallest of this many batch fractions that holds them (1: always the whole batch; "
                                 "k > 1 compiles the decode k times).")
@@ -257,7 +259,7 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
         raise ValueError("continuation is only used with budget=fixed (budget=auto chooses per step between AR after "
                          "the verified candidates, option ar+retrieval, and the drafter trees)")
     if mode != "auto":
-        for key in ("budget_trees", "budget_forget", "budget_margin"):
+        for key in ("budget_trees", "budget_forget", "budget_margin", "budget_max_batch"):
             if key in given:
                 raise ValueError(f"{key} is only used with budget=auto")
         return budget.BudgetConfig(mode=mode)
@@ -268,7 +270,8 @@ def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
         trees = ((sp.top_k, sp.depth, sp.total_tokens),)
     else:
         trees = budget.DEFAULT_TREES
-    return budget.BudgetConfig(mode="auto", trees=trees, forget=s["budget_forget"], margin=s["budget_margin"])
+    return budget.BudgetConfig(mode="auto", trees=trees, forget=s["budget_forget"], margin=s["budget_margin"],
+                               max_batch=s["budget_max_batch"])
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
@@ -306,6 +309,12 @@ def _build_drafter(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
                                       vla_policy.drafter_sd(spec), spec=spec)
 
 
+def _as_ar(name: str, params, cfg: vla.VLAConfig, tok, table) -> Policy:
+    """A budget=auto method where drafting cannot pay: AR's decode (program and tokens)."""
+    policy = vla_policy.decoding_policy(name, params, cfg, tok, vla_policy.ar)
+    return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table, runs_as_ar=True))
+
+
 def _build_hybrid(name: str):
     def build(env: TabletopEnv, paths: dict, given: dict, *, batch_size: int | None = None,
               cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, calibrate_costs: bool = False,
@@ -326,6 +335,10 @@ def _build_hybrid(name: str):
             if batch_size is None or batch_size < 1:
                 raise ValueError(f"budget=auto measures decode costs at the batch size in use: pass batch_size "
                                  f"(rows per device), got {batch_size}")
+            if not hcfg.budget.drafts_at(batch_size):
+                log(f"{name}: batch {batch_size} is above budget_max_batch {hcfg.budget.max_batch}: decoding with "
+                    f"plain AR")
+                return _as_ar(name, params, cfg, tok, table)
             table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log,
                                                   measure=calibrate_costs)
             all_params["costs"] = table.costs()
@@ -335,8 +348,7 @@ def _build_hybrid(name: str):
                 # its batch-mates decode: HeiSD is plain AR here, program and tokens.
                 log(f"{name}: at batch {batch_size} the cost table leaves no draft option that can beat AR by the "
                     f"{hcfg.budget.margin:.0%} margin: decoding with plain AR")
-                policy = vla_policy.decoding_policy(name, params, cfg, tok, vla_policy.ar)
-                return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table, runs_as_ar=True))
+                return _as_ar(name, params, cfg, tok, table)
         policy = vla_policy.hybrid_policy(name, all_params, cfg, tok, hcfg, key_spec, env.global_index)
         return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table))
     return build

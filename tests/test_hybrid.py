@@ -290,10 +290,10 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
 
 
 def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch):
-    """budget=auto with a cost table in which every draft option is dominated (as at batch 256
-    on an H100): the policy is AR's decode, so HeiSD cannot be slower than AR there; with a
-    table where drafting can win, and with row buckets (where a skip saves time), it is the
-    HeiSD step."""
+    """budget=auto at a batch size above budget_max_batch (the default: 1), or with a cost
+    table in which every draft option is dominated (as at batch 256 on an H100): the policy is
+    AR's decode, so HeiSD cannot be slower than AR there; with a table where drafting can win,
+    and with row buckets (where a skip saves time), it is the HeiSD step."""
     from envs import tasks
     from envs.env import TabletopEnv
     from heisd_jax import budget, cost_model, methods, vla_policy
@@ -308,12 +308,21 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
                                 round_ms=jnp.full((n,), 0.5, jnp.float32))
 
     env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
-    for fixed, buckets, as_ar in ((1.2, 1, True), (0.3, 1, False), (1.2, 4, False)):
-        monkeypatch.setattr(cost_model, "load_or_calibrate", lambda *a, fixed=fixed, **k: Table(fixed))
+    ar_code = vla_policy.decoding_policy("ar", None, None, None, vla_policy.ar).act.__code__
+    for fixed, given, as_ar in ((1.2, dict(budget_max_batch=256), True), (0.3, dict(budget_max_batch=256), False),
+                                (1.2, dict(budget_max_batch=256, row_buckets=4), False), (0.3, {}, True)):
+        tables = []
+        monkeypatch.setattr(cost_model, "load_or_calibrate",
+                            lambda *a, fixed=fixed, **k: tables.append(fixed) or Table(fixed))
         logs = []
-        policy = methods.make_policy("heisd", env, batch_size=256, log=logs.append, row_buckets=buckets)
+        policy = methods.make_policy("heisd", env, batch_size=256, log=logs.append, **given)
         assert policy.name == "heisd"
-        assert policy.meta.get("runs_as_ar", False) == as_ar, (fixed, buckets)
+        assert policy.meta.get("runs_as_ar", False) == as_ar, (fixed, given)
         assert ("decoding with plain AR" in " ".join(logs)) == as_ar
-        if as_ar:
-            assert policy.act.__code__ is vla_policy.decoding_policy("ar", None, None, None, vla_policy.ar).act.__code__
+        assert (policy.act.__code__ is ar_code) == as_ar
+        # Above budget_max_batch no cost table is loaded or measured at all.
+        assert bool(tables) == ("budget_max_batch" in given)
+    with pytest.raises(ValueError, match="budget_max_batch is only used with budget=auto"):
+        methods.hybrid_config("heisd", {"budget": "fixed", "budget_max_batch": 4})
+    with pytest.raises(ValueError, match="max_batch must be >= 1"):
+        budget.BudgetConfig(mode="auto", max_batch=0)
