@@ -161,6 +161,16 @@ def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.nda
     return jax.tree.map(put, old, new)
 
 
+def rows_where(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:
+    """`new` in the rows [n] where `rows` holds, `old` elsewhere, for every leaf batched over
+    the n rows; other (batch-wide) leaves keep `old`."""
+    def put(o, nw):
+        if o.ndim and o.shape[0] == n and nw.shape == o.shape:
+            return jnp.where(rows.reshape((n,) + (1,) * (o.ndim - 1)), nw, o)
+        return o
+    return jax.tree.map(put, old, new)
+
+
 def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
               num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
               constrain: Callable[[Any], Any] = lambda tree: tree) -> tuple[EpisodeResults, jnp.ndarray]:

@@ -7,9 +7,16 @@ Closed-loop timings mix decoding with physics and rendering, and at batch 1 MJX'
 dominate. To time the decoder alone on realistic inputs, this first records --steps control
 steps of --record_method (default ar) in --record_envs envs on the fixed evaluation initial
 states (images, proprio, end-effector kinematics as the rollout saw them), then, per method
-and batch size B, replays them: a jitted `lax.scan` over the recorded steps calls the
-method's policy step (its own state carried: action history, boundary, skips, the draft
-budget's estimates) on B of the recorded envs. Timed after a warm-up call (compilation
+and batch size B, replays them: a jitted `lax.scan` over replay steps calls the method's
+policy step (its own state carried: action history, boundary, skips, the draft budget's
+estimates) on B lanes. Only running steps are replayed (`lanes`): lane j plays the running
+steps of recorded envs j, j + B, j + 2B, ... back to back, its per-env state reset where an
+episode starts (the batch-wide draft budget carries on), as an evaluator's refilled env slot
+does, and every lane is cut to the shortest; a lane plays --lane_envs envs (fewer where the
+recording has fewer than B x --lane_envs). (A finished
+episode's frozen observation repeats its last action, which a method with verify-skip
+decodes almost for free: replaying those steps would credit it with time no running env
+saves.) Timed after a warm-up call (compilation
 excluded), median of --reps; speedup = AR time / method time in this run, with its spread
 (min..max of the per-repetition ratios, AR's i-th repetition against the method's i-th).
 The target's prefill alone is timed the same way: AR / prefill is the ceiling of any method
@@ -52,7 +59,7 @@ cli.positive_int_list("batch_sizes")
 flags.DEFINE_integer("record_envs", 256, "Recorded envs (>= the largest batch size).")
 flags.DEFINE_integer("steps", 120, "Recorded control steps per env.")
 flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollouts are recorded.")
-flags.DEFINE_integer("batch1_envs", 4, "Batch 1: replay this many recorded envs one after another.")
+flags.DEFINE_integer("lane_envs", 4, "Recorded envs each replayed row plays one after another (their running steps).")
 flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE), "budget=auto: cost table directory ('' = none).")
@@ -141,13 +148,31 @@ def plot(rows, path):
     print(f"plot: {path}")
 
 
+def lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """Replay indices (steps [T, batch], envs [T, batch]) into a recording whose running mask
+    is `running` [steps, recorded envs]: lane j plays the running steps of envs j, j + batch,
+    ... (of the first `envs`) one after another; every lane is cut to the shortest, T."""
+    if not np.all(running[:-1] >= running[1:]):
+        raise ValueError("an env runs again after its episode ended: the recording is not one episode per env")
+    n = running.sum(0)
+    per_lane = [[(t, e) for e in range(j, envs, batch) for t in range(n[e])] for j in range(batch)]
+    t_len = min(len(lane) for lane in per_lane)
+    if t_len == 0:
+        raise ValueError(f"a lane of batch {batch} has no running step: record more envs or steps")
+    idx = np.asarray([lane[:t_len] for lane in per_lane]).transpose(1, 0, 2)  # [T, batch, 2]
+    return idx[..., 0], idx[..., 1]
+
+
 def replay_fn(policy):
     def run(params, states):
         first = jax.tree.map(lambda x: x[0], states)
         pstate = policy.init(params, first)
-        keys = jnp.zeros((first.step.shape[0], 2), jnp.uint32)
+        b = first.step.shape[0]
+        keys = jnp.zeros((b, 2), jnp.uint32)
 
         def body(pstate, s):
+            fresh = policy.init(params, s)  # rows whose episode starts here begin from a fresh state
+            pstate = rollout.rows_where(s.step == 0, fresh, pstate, b)
             actions, pstate, stats = policy.act(params, s, pstate, keys)
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]
@@ -171,6 +196,8 @@ def main(argv):
         sizes = sorted({int(b) for b in FLAGS.batch_sizes})
     except ValueError as e:
         raise app.UsageError(str(e)) from e
+    if FLAGS.lane_envs < 1:
+        raise app.UsageError(f"--lane_envs must be >= 1, got {FLAGS.lane_envs}")
     if sizes[0] < 1 or sizes[-1] > FLAGS.record_envs:
         raise app.UsageError(f"batch sizes must be in 1..--record_envs={FLAGS.record_envs}, got {sizes}")
     method_list = [("ar", {})] + [m for m in method_list if m != ("ar", {})]
@@ -193,7 +220,10 @@ def main(argv):
             print(f"B={b:<4} retrieval query ({store.size} entries): {query_ms[b]:.3f} ms", flush=True)
     prefill = prefill_policy(env) if FLAGS.ceiling else None
     for b in sizes:
-        groups = [np.arange(i, i + 1) for i in range(FLAGS.batch1_envs)] if b == 1 else [np.arange(b)]
+        t_idx, e_idx = lanes(running, min(FLAGS.record_envs, b * FLAGS.lane_envs), b)
+        sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
+        ar_bins = np.asarray(tok.to_bins(np.asarray(ar_actions)[t_idx, e_idx]))
+        print(f"B={b:<4} replay: {t_idx.shape[0]} running steps per lane", flush=True)
         base = None
         todo = list(method_list) + ([("prefill", {})] if FLAGS.ceiling else [])
         for name, settings in todo:
@@ -207,19 +237,12 @@ def main(argv):
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
             fn = replay_fn(policy)
-            reps, stats_all, same, dist = np.zeros(FLAGS.reps), {}, [], []
-            for g in groups:
-                sub = jax.tree.map(lambda x: x[:, g], states)
-                reps += np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps))
-                actions, stats = jax.device_get(fn(policy.params, sub))
-                m = running[:, g]
-                for k, v in stats.items():
-                    stats_all[k] = stats_all.get(k, 0.0) + float(np.asarray(v)[m].sum())
-                bins = np.asarray(tok.to_bins(actions)), np.asarray(tok.to_bins(np.asarray(ar_actions)[:, g]))
-                same.append(np.all(bins[0] == bins[1], -1)[m])
-                dist.append(np.abs(bins[0] - bins[1]).mean(-1)[m])
-            n_act = float(sum(running[:, g].sum() for g in groups))
-            rep_ms = 1e3 * reps / (FLAGS.steps * len(groups))  # per batched action, per repetition
+            rep_ms = 1e3 * np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)) / t_idx.shape[0]
+            actions, stats = jax.device_get(fn(policy.params, sub))  # per batched action, per repetition
+            stats_all = {k: float(np.asarray(v).sum()) for k, v in stats.items()}
+            bins = np.asarray(tok.to_bins(actions))
+            same, dist = np.all(bins == ar_bins, -1), np.abs(bins - ar_bins).mean(-1)
+            n_act = float(t_idx.size)
             ms = float(np.median(rep_ms))
             if name == "ar" and not settings:
                 base, base_reps = ms, rep_ms
@@ -229,8 +252,8 @@ def main(argv):
                    "ms_reps": rep_ms.tolist(), "speedup_vs_ar": base / ms,
                    "speedup_spread": [float(ratios.min()), float(ratios.max())],
                    **{f"{k}_per_action": v / n_act for k, v in stats_all.items()},
-                   "identical_to_ar": float(np.concatenate(same).mean()),
-                   "mean_bin_distance_to_ar": float(np.concatenate(dist).mean())}
+                   "identical_to_ar": float(same.mean()), "mean_bin_distance_to_ar": float(dist.mean()),
+                   "replay_steps": int(t_idx.shape[0])}
             if "target_passes" in stats_all:
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
             if policy.meta.get("cost_table") is not None:
