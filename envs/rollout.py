@@ -19,6 +19,7 @@ from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from envs.env import EnvState, TabletopEnv
 
@@ -159,6 +160,21 @@ def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.nda
             return o.at[rows].set(nw, mode="drop")
         return jnp.where(shared_too, nw, o) if nw.shape == o.shape else o
     return jax.tree.map(put, old, new)
+
+
+def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
+    """Replay indices (steps [T, batch], envs [T, batch]) into a recording whose running mask
+    is `running` [steps, recorded envs]: lane j plays the running steps of envs j, j + batch,
+    ... (of the first `envs`) one after another; every lane is cut to the shortest, T."""
+    if not np.all(running[:-1] >= running[1:]):
+        raise ValueError("an env runs again after its episode ended: the recording is not one episode per env")
+    n = running.sum(0)
+    per_lane = [[(t, e) for e in range(j, envs, batch) for t in range(n[e])] for j in range(batch)]
+    t_len = min(len(lane) for lane in per_lane)
+    if t_len == 0:
+        raise ValueError(f"a lane of batch {batch} has no running step: record more envs or steps")
+    idx = np.asarray([lane[:t_len] for lane in per_lane]).transpose(1, 0, 2)  # [T, batch, 2]
+    return idx[..., 0], idx[..., 1]
 
 
 def rows_where(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:

@@ -9,7 +9,7 @@ steps of --record_method (default ar) in --record_envs envs on the fixed evaluat
 states (images, proprio, end-effector kinematics as the rollout saw them), then, per method
 and batch size B, replays them: a jitted `lax.scan` over replay steps calls the method's
 policy step (its own state carried: action history, boundary, skips, the draft budget's
-estimates) on B lanes. Only running steps are replayed (`lanes`): lane j plays the running
+estimates) on B lanes. Only running steps are replayed (`envs.rollout.replay_lanes`): lane j plays the running
 steps of recorded envs j, j + B, j + 2B, ... back to back, its per-env state reset where an
 episode starts (the batch-wide draft budget carries on), as an evaluator's refilled env slot
 does, and every lane is cut to the shortest; a lane plays --lane_envs envs (fewer where the
@@ -148,21 +148,6 @@ def plot(rows, path):
     print(f"plot: {path}")
 
 
-def lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
-    """Replay indices (steps [T, batch], envs [T, batch]) into a recording whose running mask
-    is `running` [steps, recorded envs]: lane j plays the running steps of envs j, j + batch,
-    ... (of the first `envs`) one after another; every lane is cut to the shortest, T."""
-    if not np.all(running[:-1] >= running[1:]):
-        raise ValueError("an env runs again after its episode ended: the recording is not one episode per env")
-    n = running.sum(0)
-    per_lane = [[(t, e) for e in range(j, envs, batch) for t in range(n[e])] for j in range(batch)]
-    t_len = min(len(lane) for lane in per_lane)
-    if t_len == 0:
-        raise ValueError(f"a lane of batch {batch} has no running step: record more envs or steps")
-    idx = np.asarray([lane[:t_len] for lane in per_lane]).transpose(1, 0, 2)  # [T, batch, 2]
-    return idx[..., 0], idx[..., 1]
-
-
 def replay_fn(policy):
     def run(params, states):
         first = jax.tree.map(lambda x: x[0], states)
@@ -220,7 +205,7 @@ def main(argv):
             print(f"B={b:<4} retrieval query ({store.size} entries): {query_ms[b]:.3f} ms", flush=True)
     prefill = prefill_policy(env) if FLAGS.ceiling else None
     for b in sizes:
-        t_idx, e_idx = lanes(running, min(FLAGS.record_envs, b * FLAGS.lane_envs), b)
+        t_idx, e_idx = rollout.replay_lanes(running, min(FLAGS.record_envs, b * FLAGS.lane_envs), b)
         sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
         ar_bins = np.asarray(tok.to_bins(np.asarray(ar_actions)[t_idx, e_idx]))
         print(f"B={b:<4} replay: {t_idx.shape[0]} running steps per lane", flush=True)

@@ -1,4 +1,4 @@
-"""experiments.bench_methods replays only running steps: lanes of episodes back to back,
+"""The decode benchmark (experiments.bench_methods) replays only running steps: lanes of episodes back to back,
 each lane cut to the shortest, and a policy's per-row state reset where an episode starts."""
 
 import jax.numpy as jnp
@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from envs import rollout
-from experiments.bench_methods import lanes
 
 
 def _running(lengths, steps):
@@ -15,21 +14,21 @@ def _running(lengths, steps):
 
 def test_lanes_play_episodes_back_to_back_and_only_running_steps():
     running = _running([3, 5, 2, 4], steps=6)
-    t, e = lanes(running, envs=4, batch=2)
+    t, e = rollout.replay_lanes(running, envs=4, batch=2)
     # lane 0: env 0 (3 steps) then env 2 (2): 5; lane 1: env 1 (5) then env 3 (4): 9; cut to 5.
     assert t.shape == e.shape == (5, 2)
     assert e[:, 0].tolist() == [0, 0, 0, 2, 2] and t[:, 0].tolist() == [0, 1, 2, 0, 1]
     assert e[:, 1].tolist() == [1] * 5 and t[:, 1].tolist() == [0, 1, 2, 3, 4]
     assert running[t, e].all()
-    t1, e1 = lanes(running, envs=3, batch=1)  # batch 1: the first `envs` envs in turn
+    t1, e1 = rollout.replay_lanes(running, envs=3, batch=1)  # batch 1: the first `envs` envs in turn
     assert e1[:, 0].tolist() == [0] * 3 + [1] * 5 + [2] * 2
 
 
 def test_lanes_refuse_a_recording_they_cannot_replay():
     with pytest.raises(ValueError, match="runs again after its episode ended"):
-        lanes(np.asarray([[True], [False], [True]]), envs=1, batch=1)
+        rollout.replay_lanes(np.asarray([[True], [False], [True]]), envs=1, batch=1)
     with pytest.raises(ValueError, match="a lane of batch 2 has no running step"):
-        lanes(_running([3, 0], steps=4), envs=2, batch=2)
+        rollout.replay_lanes(_running([3, 0], steps=4), envs=2, batch=2)
 
 
 def test_rows_where_resets_only_the_rows_given_and_keeps_batch_wide_leaves():
