@@ -9,14 +9,13 @@ steps of --record_method (default ar) in --record_envs envs on the fixed evaluat
 states (images, proprio, end-effector kinematics as the rollout saw them), then, per method
 and batch size B, replays them: a jitted `lax.scan` over replay steps calls the method's
 policy step (its own state carried: action history, boundary, skips, the draft budget's
-estimates) on B lanes. Only running steps are replayed (`envs.rollout.replay_lanes`): lane j plays the running
-steps of recorded envs j, j + B, j + 2B, ... back to back, its per-env state reset where an
-episode starts (the batch-wide draft budget carries on), as an evaluator's refilled env slot
-does, and every lane is cut to the shortest; a lane plays --lane_envs envs (fewer where the
-recording has fewer than B x --lane_envs). (A finished
-episode's frozen observation repeats its last action, which a method with verify-skip
-decodes almost for free: replaying those steps would credit it with time no running env
-saves.) Timed after a warm-up call (compilation
+estimates) on B lanes. Only running steps are replayed (`envs.rollout.replay_lanes`): lane
+j plays the running steps of recorded envs j, j + B, j + 2B, ... (--lane_envs of them, fewer
+where the recording has fewer than B x --lane_envs) back to back, its per-env state reset
+where an episode starts (the batch-wide draft budget carries on), as an evaluator's refilled
+env slot does; every lane is cut to the shortest. (A finished episode's frozen observation
+repeats its last action, which a method with verify-skip decodes almost for free: replaying
+those steps would credit it with time no running env saves.) Timed after a warm-up call (compilation
 excluded), median of --reps; speedup = AR time / method time in this run, with its spread
 (min..max of the per-repetition ratios, AR's i-th repetition against the method's i-th).
 The target's prefill alone is timed the same way: AR / prefill is the ceiling of any method
@@ -222,8 +221,9 @@ def main(argv):
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
             fn = replay_fn(policy)
+            # ms per batched action, per repetition
             rep_ms = 1e3 * np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)) / t_idx.shape[0]
-            actions, stats = jax.device_get(fn(policy.params, sub))  # per batched action, per repetition
+            actions, stats = jax.device_get(fn(policy.params, sub))
             stats_all = {k: float(np.asarray(v).sum()) for k, v in stats.items()}
             bins = np.asarray(tok.to_bins(actions))
             same, dist = np.all(bins == ar_bins, -1), np.abs(bins - ar_bins).mean(-1)
