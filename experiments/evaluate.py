@@ -101,6 +101,8 @@ def main(argv):
                                 "ceiling_ar_over_prefill": table.ceiling}
 
     made = results_io.provenance(cli.command_line())
+    # A budget=auto method built as plain AR at this batch size (methods._as_ar) says so.
+    as_ar = {"runs_as_ar": True} if policy.meta.get("runs_as_ar") else {}
 
     def write(results):
         summary = ev.summarize(env.tasks, results)
@@ -110,7 +112,7 @@ def main(argv):
         timing["wall_seconds"] = time.perf_counter() - T_START
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
-                                                 "timing": timing, **made})
+                                                 "timing": timing, **as_ar, **made})
         return summary
 
     def on_batch(results, t):
