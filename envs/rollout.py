@@ -151,7 +151,7 @@ class EpisodeResults(NamedTuple):
         return cls(state.success, state.step, state.invalid_action, state.unstable, totals)
 
 
-def _rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.ndarray | bool = False) -> Any:
+def rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.ndarray | bool = False) -> Any:
     """Writes `new`'s rows [R] into `old`'s slot rows `rows` [R] (index n: dropped), for every
     leaf batched over the n slots; other (batch-wide) leaves keep `old`, or take `new`'s
     where `shared_too` holds."""
@@ -175,16 +175,6 @@ def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray
         raise ValueError(f"a lane of batch {batch} has no running step: record more envs or steps")
     idx = np.asarray([lane[:t_len] for lane in per_lane]).transpose(1, 0, 2)  # [T, batch, 2]
     return idx[..., 0], idx[..., 1]
-
-
-def rows_where(rows: jnp.ndarray, new: Any, old: Any, n: int) -> Any:
-    """`new` in the rows [n] where `rows` holds, `old` elsewhere, for every leaf batched over
-    the n rows; other (batch-wide) leaves keep `old`."""
-    def put(o, nw):
-        if o.ndim and o.shape[0] == n and nw.shape == o.shape:
-            return jnp.where(rows.reshape((n,) + (1,) * (o.ndim - 1)), nw, o)
-        return o
-    return jax.tree.map(put, old, new)
 
 
 def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
@@ -239,8 +229,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         idx = jnp.minimum(eps, n_queue - 1)
         s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed, reset)
         s2 = s2.replace(done=s2.done | ~take)
-        state = _rows_set(rows, s2, state, s)
-        pstate = _rows_set(rows, p2, pstate, s, shared_too=blank == 0)
+        state = rows_set(rows, s2, state, s)
+        pstate = rows_set(rows, p2, pstate, s, shared_too=blank == 0)
         act_keys = act_keys.at[rows].set(k2, mode="drop")
         totals = {k: v.at[rows].set(0.0, mode="drop") for k, v in totals.items()}
         slot_ep = slot_ep.at[jnp.where(take, rows, s)].set(eps, mode="drop")

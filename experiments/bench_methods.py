@@ -156,7 +156,7 @@ def replay_fn(policy):
 
         def body(pstate, s):
             fresh = policy.init(params, s)  # rows whose episode starts here begin from a fresh state
-            pstate = rollout.rows_where(s.step == 0, fresh, pstate, b)
+            pstate = rollout.rows_set(jnp.where(s.step == 0, jnp.arange(b), b), fresh, pstate, b)
             actions, pstate, stats = policy.act(params, s, pstate, keys)
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]

@@ -105,9 +105,8 @@ class BudgetConfig:
 
     def drafts_at(self, batch: int) -> bool:
         """Whether budget "auto" may draft at this batch size (rows per device). A batch
-        advances in lockstep and pays for its slowest row's passes, and measured with
-        HeiSD's default settings no batch above 1 gained over AR on an H100 (0.93-0.94x at 16
-        with 1, 2 or 4 row buckets; AR chosen on every step at 256 and 1,024): above
+        advances in lockstep and pays for its slowest row's passes, so drafting gains least
+        where rows are many (docs/method.md has the measurements behind the default): above
         `max_batch` the method is plain AR, with no cost table needed."""
         return batch <= self.max_batch
 

@@ -31,9 +31,9 @@ def test_lanes_refuse_a_recording_they_cannot_replay():
         rollout.replay_lanes(_running([3, 0], steps=4), envs=2, batch=2)
 
 
-def test_rows_where_resets_only_the_rows_given_and_keeps_batch_wide_leaves():
+def test_rows_set_resets_only_the_rows_given_and_keeps_batch_wide_leaves():
     old = {"rows": jnp.arange(6.0).reshape(3, 2), "shared": jnp.ones((5,))}
     new = {"rows": -jnp.ones((3, 2)), "shared": jnp.zeros((5,))}
-    out = rollout.rows_where(jnp.asarray([False, True, False]), new, old, 3)
+    out = rollout.rows_set(jnp.asarray([3, 1, 3]), new, old, 3)  # row 1; index 3: none
     assert out["rows"].tolist() == [[0, 1], [-1, -1], [4, 5]]
     assert out["shared"].tolist() == [1.0] * 5
