@@ -60,9 +60,10 @@ flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every tr
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
-flags.DEFINE_integer("drafter_rollout_episodes", 10, "Episodes per task in which the final target drives alone "
+flags.DEFINE_integer("drafter_rollout_episodes", 0, "Episodes per task in which the final target drives alone "
                      "(beta 0), added to the drafter's training states so it learns to predict the target where the "
-                     "target itself goes; 0: none (the drafter sees the demonstrations and DAgger rounds only).")
+                     "target itself goes (a stage of ~3-6 minutes on an H100); 0: none, the drafter sees the "
+                     "demonstrations and the DAgger rounds, the last of which the previous policy drove alone.")
 flags.DEFINE_integer("num_envs", 1000, "Parallel envs for collection and evaluation.")
 flags.DEFINE_integer("eval_episodes", 50, "Evaluation episodes per task (the fixed evaluation states).")
 flags.DEFINE_string("suites", "all", "Suites to build on.")
