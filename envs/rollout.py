@@ -151,15 +151,29 @@ class EpisodeResults(NamedTuple):
         return cls(state.success, state.step, state.invalid_action, state.unstable, totals)
 
 
-def rows_set(rows: jnp.ndarray, new: Any, old: Any, n: int, shared_too: jnp.ndarray | bool = False) -> Any:
-    """Writes `new`'s rows [R] into `old`'s slot rows `rows` [R] (index n: dropped), for every
-    leaf batched over the n slots; other (batch-wide) leaves keep `old`, or take `new`'s
-    where `shared_too` holds."""
-    def put(o, nw):
-        if o.ndim and o.shape[0] == n and nw.shape[1:] == o.shape[1:]:
-            return o.at[rows].set(nw, mode="drop")
-        return jnp.where(shared_too, nw, o) if nw.shape == o.shape else o
-    return jax.tree.map(put, old, new)
+def per_row_leaves(policy: Policy, states: Any) -> Any:
+    """Which leaves of `policy.init`'s state are batched over the envs: a pytree of bools,
+    True where a leaf's leading dimension follows the batch size of `states` (concrete or
+    shapes only). Found by tracing `init` at that batch size and at one more, so a batch-wide
+    leaf (e.g. one entry per draft option) is told apart from a per-env one even when its
+    length equals the batch size."""
+    more = jax.tree.map(lambda x: jax.ShapeDtypeStruct((x.shape[0] + 1,) + x.shape[1:], x.dtype), states)
+    at_b, at_more = (jax.eval_shape(lambda st: policy.init(policy.params, st), st) for st in (states, more))
+    return jax.tree.map(lambda a, b: a.shape != b.shape, at_b, at_more)
+
+
+def rows_set(rows: jnp.ndarray, new: Any, old: Any, per_row: Any = True,
+             shared_too: jnp.ndarray | bool = False) -> Any:
+    """Writes `new`'s rows [R] into `old`'s rows `rows` [R] (an index past the batch: dropped)
+    for every leaf that `per_row` (a pytree of bools as `per_row_leaves` gives, or one bool
+    for all leaves) marks as batched over the envs; the other (batch-wide) leaves keep `old`,
+    or take `new`'s where `shared_too` holds."""
+    if isinstance(per_row, bool):
+        per_row = jax.tree.map(lambda _: per_row, old)
+
+    def put(o, nw, row):
+        return o.at[rows].set(nw, mode="drop") if row else jnp.where(shared_too, nw, o)
+    return jax.tree.map(put, old, new, per_row)
 
 
 def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray, np.ndarray]:
@@ -210,6 +224,7 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     state = jax.tree.map(lambda x: jnp.zeros((s,) + x.shape[1:], x.dtype), state)  # every leaf is per env
     pstate = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
                           jax.eval_shape(lambda st: policy.init(policy.params, st), state))
+    per_row = per_row_leaves(policy, state)
     act_keys = jnp.zeros((s,) + keys.shape[1:], keys.dtype)
     slot_ep = jnp.full((s,), n_queue, jnp.int32)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
@@ -229,8 +244,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         idx = jnp.minimum(eps, n_queue - 1)
         s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed, reset)
         s2 = s2.replace(done=s2.done | ~take)
-        state = rows_set(rows, s2, state, s)
-        pstate = rows_set(rows, p2, pstate, s, shared_too=blank == 0)
+        state = rows_set(rows, s2, state)
+        pstate = rows_set(rows, p2, pstate, per_row, shared_too=blank == 0)
         act_keys = act_keys.at[rows].set(k2, mode="drop")
         totals = {k: v.at[rows].set(0.0, mode="drop") for k, v in totals.items()}
         slot_ep = slot_ep.at[jnp.where(take, rows, s)].set(eps, mode="drop")

@@ -153,10 +153,11 @@ def replay_fn(policy):
         pstate = policy.init(params, first)
         b = first.step.shape[0]
         keys = jnp.zeros((b, 2), jnp.uint32)
+        per_row = rollout.per_row_leaves(policy, first)
 
         def body(pstate, s):
             fresh = policy.init(params, s)  # rows whose episode starts here begin from a fresh state
-            pstate = rollout.rows_set(jnp.where(s.step == 0, jnp.arange(b), b), fresh, pstate, b)
+            pstate = rollout.rows_set(jnp.where(s.step == 0, jnp.arange(b), b), fresh, pstate, per_row)
             actions, pstate, stats = policy.act(params, s, pstate, keys)
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]

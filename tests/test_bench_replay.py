@@ -31,9 +31,24 @@ def test_lanes_refuse_a_recording_they_cannot_replay():
         rollout.replay_lanes(_running([3, 0], steps=4), envs=2, batch=2)
 
 
+def _policy_with_a_batch_wide_leaf(options=6):
+    """A policy state as HeiSD's: per-env rows, and one entry per draft option for the batch."""
+    def init(params, states):
+        return {"rows": jnp.zeros((states.shape[0], 2)), "shared": jnp.ones((options,))}
+    return rollout.Policy(name="fake", init=init, act=None)
+
+
+def test_per_row_leaves_tell_a_batch_wide_leaf_from_a_per_env_one_of_the_same_length():
+    policy = _policy_with_a_batch_wide_leaf(options=6)
+    assert rollout.per_row_leaves(policy, jnp.zeros((6, 3))) == {"rows": True, "shared": False}
+
+
 def test_rows_set_resets_only_the_rows_given_and_keeps_batch_wide_leaves():
-    old = {"rows": jnp.arange(6.0).reshape(3, 2), "shared": jnp.ones((5,))}
-    new = {"rows": -jnp.ones((3, 2)), "shared": jnp.zeros((5,))}
-    out = rollout.rows_set(jnp.asarray([3, 1, 3]), new, old, 3)  # row 1; index 3: none
+    policy = _policy_with_a_batch_wide_leaf(options=3)  # as long as the batch: shape alone cannot tell
+    per_row = rollout.per_row_leaves(policy, jnp.zeros((3, 1)))
+    old = {"rows": jnp.arange(6.0).reshape(3, 2), "shared": jnp.ones((3,))}
+    new = {"rows": -jnp.ones((3, 2)), "shared": jnp.zeros((3,))}
+    out = rollout.rows_set(jnp.asarray([3, 1, 3]), new, old, per_row)  # row 1; index 3: none
     assert out["rows"].tolist() == [[0, 1], [-1, -1], [4, 5]]
-    assert out["shared"].tolist() == [1.0] * 5
+    assert out["shared"].tolist() == [1.0] * 3
+    assert rollout.rows_set(jnp.asarray([3, 1, 3]), new, old, per_row, shared_too=True)["shared"].tolist() == [0.0] * 3
