@@ -45,11 +45,11 @@ from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.observation import Observation
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, cost_model, methods, results_io, retrieval, vla, vla_policy
+from heisd_jax import checkpoint, methods, results_io, retrieval, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
-cli.define_calibrate_costs()
+cli.define_cost_flags()
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
                     "Methods (as in experiments.sweep); AR is always timed first as the baseline.")
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
@@ -61,7 +61,6 @@ flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollout
 flags.DEFINE_integer("lane_envs", 4, "Recorded envs each replayed row plays one after another (their running steps).")
 flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
 cli.define_paths("checkpoint", "drafter", "datastore")
-flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE), "budget=auto: cost table directory ('' = none).")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_string("out", "", "JSON output path.")
 flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
@@ -217,8 +216,7 @@ def main(argv):
             else:
                 policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                              datastore=FLAGS.datastore, batch_size=b,
-                                             cost_cache=FLAGS.cost_cache or None,
-                                             calibrate_costs=FLAGS.calibrate_costs, **settings)
+                                             **cli.cost_kwargs(), **settings)
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
             fn = replay_fn(policy)

@@ -158,12 +158,22 @@ def existing_dir(flag_name: str, what: str) -> None:
     flags.register_validator(flag_name, check)
 
 
-def define_calibrate_costs() -> None:
-    """--calibrate_costs, for the entry points that build methods with budget=auto."""
+def define_cost_flags() -> None:
+    """--cost_cache and --calibrate_costs, for the entry points that build methods with
+    budget=auto; `cost_kwargs` passes them on to `methods.make_policy`."""
     if "calibrate_costs" in flags.FLAGS:
         return
+    from heisd_jax import cost_model  # noqa: PLC0415
+
+    flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
+                        "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
     flags.DEFINE_bool("calibrate_costs", False, "budget=auto: where no decode-cost table is cached for this device, "
                       "model, settings and batch size, measure it now (1-3 min, then cached) instead of failing.")
+
+
+def cost_kwargs() -> dict:
+    """`methods.make_policy`'s cost-table arguments from the flags `define_cost_flags` made."""
+    return {"cost_cache": flags.FLAGS.cost_cache or None, "calibrate_costs": flags.FLAGS.calibrate_costs}
 
 
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts

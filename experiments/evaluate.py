@@ -24,11 +24,11 @@ from envs import physics, tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import cost_model, evaluate as ev, methods, results_io, sharding
+from heisd_jax import evaluate as ev, methods, results_io, sharding
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
-cli.define_calibrate_costs()
+cli.define_cost_flags()
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method (policy) to evaluate.")
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
@@ -47,8 +47,6 @@ flags.DEFINE_bool("clamp_aware_implicit", physics.PhysicsConfig.clamp_aware_impl
 flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
                   "Physics: MJX's sums over a body's children in a fixed order, no scatter-add atomics on a GPU "
                   "(envs/physics.py); off: MJX's own segment_sum.")
-flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
-                    "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
 
 
 def main(argv):
@@ -79,8 +77,7 @@ def main(argv):
                                                          physics=env_physics))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=cfg.num_envs // jax.device_count(),
-                                     cost_cache=FLAGS.cost_cache or None,
-                                     calibrate_costs=FLAGS.calibrate_costs, **kwargs)
+                                     **cli.cost_kwargs(), **kwargs)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     n_total = len(task_list) * cfg.episodes_per_task

@@ -38,7 +38,7 @@ from heisd_jax import hybrid, methods, results_io, retrieval, spec_decode as sd,
 from experiments import cli
 
 FLAGS = flags.FLAGS
-cli.define_calibrate_costs()
+cli.define_cost_flags()
 flags.DEFINE_enum("method", "heisd", ["ar", "drafter", "retrieval", "heisd"], "Decoding method.")
 flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value (as in experiments.sweep).")
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
@@ -94,7 +94,7 @@ def main(argv):
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=FLAGS.batch,
-                                     calibrate_costs=FLAGS.calibrate_costs, **settings)
+                                     **cli.cost_kwargs(), **settings)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     meta = policy.meta

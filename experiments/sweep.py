@@ -34,7 +34,7 @@ from heisd_jax import evaluate as ev, methods, results_io, sharding
 from experiments import cli
 
 FLAGS = flags.FLAGS
-cli.define_calibrate_costs()
+cli.define_cost_flags()
 flags.DEFINE_string("config", "", "JSON file with any of: methods, suites, tasks, episodes, num_envs, seeds.")
 flags.DEFINE_string("methods", "ar", "Comma-separated methods, each NAME or NAME:key=value,key=value.")
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -66,7 +66,7 @@ def run_cell(cell: dict, task_list, progress) -> dict:
     env = TabletopEnv(task_list, methods.env_config(name, FLAGS.checkpoint))
     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                  datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(),
-                                 calibrate_costs=FLAGS.calibrate_costs, **settings)
+                                 **cli.cost_kwargs(), **settings)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     def on_batch(results, t):

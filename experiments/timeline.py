@@ -29,7 +29,7 @@ from heisd_jax import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS
-cli.define_calibrate_costs()
+cli.define_cost_flags()
 flags.DEFINE_string("task", "pick_red_block", "Task name.")
 flags.DEFINE_integer("episode", 0, "Evaluation initial state (0..49).")
 flags.DEFINE_enum("method", "heisd", ["retrieval", "heisd"], "Hybrid method.")
@@ -55,7 +55,7 @@ def main(argv):
     env = TabletopEnv(task, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                  datastore=FLAGS.datastore, batch_size=1,
-                                 calibrate_costs=FLAGS.calibrate_costs, **settings)
+                                 **cli.cost_kwargs(), **settings)
     n = FLAGS.steps or task[0].max_steps
     keys = env.initial_state_keys(np.array([0]), np.array([FLAGS.episode]))
     final, traj = jax.device_get(jax.jit(lambda p, k: rollout.record_episodes(

@@ -46,29 +46,35 @@ MEASURED = ("metric", "tpa_retrieval", "accepted", "tpa_drafter", "dist")  # `me
 
 
 def measure(params: dict, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, key_spec: retrieval.KeySpec,
-            tok: ActionTokenizer, steps: dict, batch: int) -> dict[str, np.ndarray]:
+            tok: ActionTokenizer, steps: dict, batch: int, drafter_alone: bool = True) -> dict[str, np.ndarray]:
     """The arrays of `MEASURED` [N] for N held-out steps. params: {"target", "drafter",
     "store"}; steps: image [N, H, W, 3], instruction [N, L], proprio [N, 8], prev (the
-    actions before each step) [N, history, 7], task [N], feat (kinematic features) [N, 5].
-    Decoded `batch` steps at a time, the last batch padded by wrapping (static shape)."""
+    actions before each step) [N, history, 7], task [N], feat (kinematic features) [N, 5],
+    and optionally key [N, dim]: the retrieval keys themselves, for a store keyed otherwise
+    than by `key_spec` (default: `retrieval.make_keys` of prev and proprio).
+    Decoded `batch` steps at a time, the last batch padded by wrapping (static shape).
+    `drafter_alone=False` skips the drafter-only decode (its TPA is then NaN), for comparing
+    datastores on the same steps."""
     metric = np.asarray(kinematics.fused_metric(jnp.asarray(steps["feat"]), hcfg.metric))
 
     @jax.jit
-    def both_ways(p, image, instruction, proprio, prev, task):
+    def both_ways(p, image, instruction, proprio, prev, task, key):
         obs = vla.Observation(image=image, instruction=instruction, proprio=proprio)
-        cand, dist, valid = retrieval.query(p["store"], retrieval.make_keys(key_spec, tok, prev, proprio), task,
-                                            hcfg.n_candidates, hcfg.max_dist)
+        key = retrieval.make_keys(key_spec, tok, prev, proprio) if key is None else key
+        cand, dist, valid = retrieval.query(p["store"], key, task, hcfg.n_candidates, hcfg.max_dist)
         no = jnp.zeros(task.shape, bool)
         _, r = hybrid.decode(p, cfg, hcfg, obs, cand, valid, ~no, no)
-        _, d = hybrid.decode(p, cfg, hcfg, obs, cand, valid, no, no)
-        return r["target_passes"], r["retrieval_accepted"], d["target_passes"], dist[:, 0]
+        alone = hybrid.decode(p, cfg, hcfg, obs, cand, valid, no, no)[1]["target_passes"] if drafter_alone else \
+            jnp.full(task.shape, jnp.nan)
+        return r["target_passes"], r["retrieval_accepted"], alone, dist[:, 0]
 
     n = len(metric)
     cols = {k: [] for k in MEASURED[1:]}
     for s in range(0, n, batch):
         idx = np.arange(s, s + batch) % n
         r = jax.device_get(both_ways(params, *(jnp.asarray(steps[k][idx]) for k in
-                                               ("image", "instruction", "proprio", "prev", "task"))))
+                                               ("image", "instruction", "proprio", "prev", "task")),
+                                     None if "key" not in steps else jnp.asarray(steps["key"][idx])))
         keep = min(batch, n - s)
         for k, v in zip(cols, r):
             cols[k].append(np.asarray(v)[:keep])
