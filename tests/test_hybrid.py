@@ -326,3 +326,34 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
         methods.hybrid_config("heisd", {"budget": "fixed", "budget_max_batch": 4})
     with pytest.raises(ValueError, match="max_batch must be >= 1"):
         budget.BudgetConfig(mode="auto", max_batch=0)
+
+
+def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
+    """`boundary.measure` (the calibration's and the datastore study's decode) with the keys
+    passed in gives what it gives computing them from the action history, and queries with
+    the keys given; skipping the drafter-only decode changes no other column. The store holds
+    each row's AR action under the row's own key (accepted whole) and an action a full half
+    of the bins away under a far key."""
+    from heisd_jax.offline import boundary  # noqa: PLC0415
+
+    params, obs, ar_tokens = tiny_hybrid
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    prev = np.random.default_rng(2).uniform(-1, 1, (B, 1, 7)).astype(np.float32)
+    keys = np.asarray(retrieval.make_keys(spec, tok, prev, obs.proprio))
+    far = keys + 100.0
+    wrong = CFG.first_action_id + (ar_tokens - CFG.first_action_id + 128) % 256
+    all_keys = jnp.asarray(np.concatenate([keys, far]))
+    store = retrieval.Datastore(keys=all_keys, sq_norms=(all_keys * all_keys).sum(-1),
+                                tokens=jnp.asarray(np.concatenate([ar_tokens, wrong])), task=jnp.tile(jnp.arange(B), 2))
+    steps = {"image": np.asarray(obs.image), "instruction": np.asarray(obs.instruction),
+             "proprio": np.asarray(obs.proprio), "prev": prev, "task": np.arange(B), "feat": np.zeros((B, 5))}
+    hcfg = dataclasses.replace(STRICT, mode="hybrid", n_candidates=1)
+    p = dict(params, store=store)
+    own = boundary.measure(p, CFG, hcfg, spec, tok, steps, batch=4)
+    given = boundary.measure(p, CFG, hcfg, spec, tok, {**steps, "key": keys}, batch=4, drafter_alone=False)
+    to_far = boundary.measure(p, CFG, hcfg, spec, tok, {**steps, "key": far}, batch=4, drafter_alone=False)
+    assert (own["accepted"] == 7).all() and (to_far["accepted"] < 7).all()
+    for k in ("metric", "tpa_retrieval", "accepted", "dist"):
+        np.testing.assert_array_equal(own[k], given[k])
+    assert np.isnan(given["tpa_drafter"]).all() and np.isfinite(own["tpa_drafter"]).all()
