@@ -3,7 +3,8 @@
   python -m experiments.build_datastore --demos=data/demos --out=checkpoints/datastore
 
 Keys: the last --history actions and the proprio vector; values: the next action's tokens
-under the target's tokenizer (built by heisd_jax/offline/datastore.py, loaded by
+under the target's tokenizer (--values: the demo's, the target's own, or, from the target's
+own rollouts, what it executed) (built by heisd_jax/offline/datastore.py, loaded by
 heisd_jax/retrieval.py). Every 1/--holdout-th episode is left out (listed in meta.json) for
 experiments.calibrate_boundary; the kinematic metric's per-feature scales (90th percentile
 over the datastore's demo steps) are saved with it. The datastore records the target's
@@ -34,7 +35,9 @@ flags.DEFINE_float("pos_scale", 10.0, "Weight of end-effector position in the ke
 flags.DEFINE_float("holdout", 0.1, "Share of demo episodes left out of the datastore (every 1/holdout-th), "
                    "for experiments.calibrate_boundary.")
 flags.DEFINE_enum("values", "demo", list(datastore.VALUES),
-                  "Values: the demo's next action, or the target's own greedy action on that step's observation.")
+                  "Values: the demo's next action; the target's own greedy action on that step's observation; "
+                  "or, for episodes the target drove alone (collect_demos --policy=TARGET --beta=0 --action_noise=0), "
+                  "the target's action in the keys' histories too (what it executed there, not the expert's labels).")
 flags.DEFINE_integer("stride", 1, "Keep every stride-th step (smaller datastore; the shipped one uses 2).")
 flags.DEFINE_bool("overwrite", False, "Replace an existing datastore at --out.")
 
@@ -51,7 +54,8 @@ def main(argv):
     try:
         n = len(demos.DemoDataset(FLAGS.demos))
         keep, held = datastore.split_episodes(n, FLAGS.holdout)
-        store = datastore.build_from_demos(FLAGS.demos, spec, tok, keep)
+        executed = datastore.executed_actions(params, cfg, tok, FLAGS.demos, keep) if FLAGS.values == "rollout" else None
+        store = datastore.build_from_demos(FLAGS.demos, spec, tok, keep, actions=executed)
         if FLAGS.values == "target":
             store = datastore.with_values(store, datastore.target_values(params, cfg, FLAGS.demos, keep))
         store = datastore.subsample(store, FLAGS.stride)

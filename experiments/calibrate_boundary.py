@@ -42,9 +42,12 @@ flags.DEFINE_string("plot", "", "PNG of acceptance vs metric (default: <datastor
 flags.DEFINE_bool("overwrite", False, "Replace an existing boundary.json.")
 
 
-def _held_out_steps(path: str, ds: demos.DemoDataset, episodes: list[int], key_spec, limit: int) -> dict:
+def _held_out_steps(path: str, ds: demos.DemoDataset, episodes: list[int], key_spec, limit: int,
+                    executed=None) -> dict:
     """Observations, action histories, tasks and kinematic features of the held-out steps
-    (whole episodes in order, cut at `limit` steps)."""
+    (whole episodes in order, cut at `limit` steps). `executed(episodes)`: the actions
+    executed on those episodes' steps where they are not the recorded ones (a datastore of
+    the target's own rollouts, `build_datastore --values=rollout`)."""
     names = [t.name for t in tasks_lib.ALL_TASKS]
     chosen, n = [], 0
     for i in episodes:
@@ -53,8 +56,10 @@ def _held_out_steps(path: str, ds: demos.DemoDataset, episodes: list[int], key_s
         chosen.append(i)
         n += ds.episodes[i]["length"]
     table = data.load_steps(path, chosen)
-    prev = np.concatenate([datastore.episode_history(np.asarray(ds.episode(i)["action"], np.float32),
-                                                     key_spec.history) for i in chosen])
+    acts = [np.asarray(ds.episode(i)["action"], np.float32) for i in chosen]
+    if executed is not None:
+        acts = np.split(executed(chosen), np.cumsum([len(a) for a in acts])[:-1])
+    prev = np.concatenate([datastore.episode_history(a, key_spec.history) for a in acts])
     task = np.concatenate([np.full(ds.episodes[i]["length"], names.index(ds.episodes[i]["task"]), np.int32)
                            for i in chosen])
     cols = dict(image=table.image, proprio=table.proprio, instruction=table.instruction, prev=prev, task=task,
@@ -87,7 +92,9 @@ def main(argv):
     cal = methods.load_calibration(FLAGS.datastore, meta)
     hcfg = methods.hybrid_config("heisd", settings, cal)
     hcfg.check_fits(cfg)
-    steps = _held_out_steps(FLAGS.demos, ds, held, key_spec, FLAGS.max_steps)
+    executed = None if meta.get("values") != "rollout" else \
+        (lambda episodes: datastore.executed_actions(params, cfg, tok, FLAGS.demos, episodes))
+    steps = _held_out_steps(FLAGS.demos, ds, held, key_spec, FLAGS.max_steps, executed)
     p = {"target": params, "drafter": dparams, "store": store}
     measured = boundary.measure(p, cfg, hcfg, key_spec, tok, steps, FLAGS.batch)
     result = boundary.calibrate(measured, rule, hcfg.boundary.min_dwell,

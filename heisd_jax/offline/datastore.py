@@ -85,25 +85,44 @@ def demo_features(path: str | os.PathLike, episodes: list[int] | None = None) ->
 
 
 def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenizer,
-                     episodes: list[int] | None = None) -> Datastore:
-    """A datastore of a demos dataset (envs.demos), keyed by global task index."""
+                     episodes: list[int] | None = None, actions: np.ndarray | None = None) -> Datastore:
+    """A datastore of a demos dataset (envs.demos), keyed by global task index. `actions`
+    [N, 7] (the chosen episodes' steps in order) replaces the recorded actions in the keys'
+    histories and the values, e.g. with what a policy executed where it drove (`executed_actions`)."""
     from envs import demos, tasks as tasks_lib  # noqa: PLC0415
 
     ds = demos.DemoDataset(path)
     names = [t.name for t in tasks_lib.ALL_TASKS]
-    idx = range(len(ds)) if episodes is None else episodes
+    idx = list(range(len(ds)) if episodes is None else episodes)
+    if actions is not None and len(actions) != sum(ds.episodes[i]["length"] for i in idx):
+        raise ValueError(f"{len(actions)} actions given for {sum(ds.episodes[i]['length'] for i in idx)} steps")
 
     def gen():
+        at = 0
         for i in idx:
             task = ds.episodes[i]["task"]
             if task not in names:
                 raise ValueError(f"{path}: episode {i} has unknown task {task!r}")
             ep = ds.episode(i)
-            yield names.index(task), np.asarray(ep["action"], np.float32), np.asarray(ep["proprio"], np.float32)
+            n = ds.episodes[i]["length"]
+            acts = ep["action"] if actions is None else actions[at: at + n]
+            at += n
+            yield names.index(task), np.asarray(acts, np.float32), np.asarray(ep["proprio"], np.float32)
     return build(spec, tok, gen())
 
 
-VALUES = ("demo", "target")  # what a key's value holds: the demo's next action, or the target's own choice
+# What a key's value holds: the demo's next action; the target's own choice on the demo's
+# state; or, for episodes the target drove alone (`collect_demos --policy=TARGET --beta=0
+# --action_noise=0`, whose recorded actions are the expert's labels), the target's action
+# in both the keys' histories and the values: what it executed, as a run-time key holds.
+VALUES = ("demo", "target", "rollout")
+
+
+def executed_actions(tparams, cfg, tok: ActionTokenizer, path: str | os.PathLike,
+                     episodes: list[int] | None = None) -> np.ndarray:
+    """The actions [N, 7] a target executed on the steps of episodes it drove alone: its
+    greedy tokens there (`target_values`), detokenized."""
+    return np.asarray(tok.decode(jnp.asarray(target_values(tparams, cfg, path, episodes))), np.float32)
 
 
 def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | None = None,
