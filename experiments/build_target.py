@@ -60,10 +60,14 @@ flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every tr
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
-flags.DEFINE_integer("drafter_rollout_episodes", 0, "Episodes per task in which the final target drives alone "
-                     "(beta 0), added to the drafter's training states so it learns to predict the target where the "
-                     "target itself goes (a stage of ~3-6 minutes on an H100); 0: none, the drafter sees the "
-                     "demonstrations and the DAgger rounds, the last of which the previous policy drove alone.")
+flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
+                     "a stage of ~3-6 minutes on an H100): added to the drafter's training states, so it learns to "
+                     "predict the target where the target itself goes, and with --datastore_source=rollouts the "
+                     "datastore's contents; 0: none (the drafter sees the demonstrations and the DAgger rounds, the "
+                     "last of which the previous policy drove alone).")
+flags.DEFINE_enum("datastore_source", "demos", ["demos", "rollouts"], "The retrieval datastore's episodes: the "
+                  "expert demonstrations, or the final target's own rollouts (--rollout_episodes; build_datastore "
+                  "--values=rollout: keyed and valued by what the target executed).")
 flags.DEFINE_integer("num_envs", 1000, "Parallel envs for collection and evaluation.")
 flags.DEFINE_integer("eval_episodes", 50, "Evaluation episodes per task (the fixed evaluation states).")
 flags.DEFINE_string("suites", "all", "Suites to build on.")
@@ -163,11 +167,13 @@ def plan(w: Path) -> list[Stage]:
                                      f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
                             {f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")},
                             expected_episodes=n_tasks * FLAGS.eval_episodes))
-    if "drafter" not in FLAGS.skip and FLAGS.drafter_rollout_episodes:
-        rollouts = w / "target_rollouts"
-        data.append(str(rollouts))
+    rollouts = w / "target_rollouts"
+    datastore_from_rollouts = FLAGS.datastore_source == "rollouts" and "datastore" not in FLAGS.skip
+    if FLAGS.rollout_episodes and ("drafter" not in FLAGS.skip or datastore_from_rollouts):
+        if "drafter" not in FLAGS.skip:
+            data.append(str(rollouts))
         stages.append(Stage("target_rollouts", ["collect_demos", *scope, f"--policy={final}", "--beta=0",
-                                                f"--episodes_per_task={FLAGS.drafter_rollout_episodes}",
+                                                f"--episodes_per_task={FLAGS.rollout_episodes}",
                                                 f"--first_episode={100000 * (FLAGS.rounds + 1)}",
                                                 f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],
                             rollouts, {"policy_success": r"policy success ([\d.]+%)"}))
@@ -177,11 +183,13 @@ def plan(w: Path) -> list[Stage]:
                                         f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
                                         "--log_every=500", "--ckpt_every=1000", f"--export={w / 'drafter'}"],
                             w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
+    source = rollouts if FLAGS.datastore_source == "rollouts" else w / "demos"
     if "datastore" not in FLAGS.skip:
-        stages.append(Stage("datastore", ["build_datastore", f"--demos={w / 'demos'}", f"--checkpoint={final}",
+        stages.append(Stage("datastore", ["build_datastore", f"--demos={source}", f"--checkpoint={final}",
+                                          *(["--values=rollout"] if source == rollouts else []),
                                           f"--out={w / 'datastore'}"], w / "datastore"))
     if "calibration" not in FLAGS.skip and "datastore" not in FLAGS.skip and "drafter" not in FLAGS.skip:
-        stages.append(Stage("calibration", ["calibrate_boundary", f"--demos={w / 'demos'}",
+        stages.append(Stage("calibration", ["calibrate_boundary", f"--demos={source}",
                                             f"--datastore={w / 'datastore'}", f"--checkpoint={final}",
                                             f"--drafter={w / 'drafter'}"], w / "datastore" / "boundary.json"))
     return stages
@@ -189,12 +197,14 @@ def plan(w: Path) -> list[Stage]:
 
 def _settings() -> dict:
     keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
-            "batch_size", "d_model", "n_layers", "drafter_steps", "drafter_rollout_episodes", "suites", "tasks",
+            "batch_size", "d_model", "n_layers", "drafter_steps", "rollout_episodes", "suites", "tasks",
             "image_size", "start")
     out = {k: getattr(FLAGS, k) for k in keys}
     out["beta"] = [_beta(r) for r in range(1, FLAGS.rounds + 1)]
     if FLAGS.suite_weights:  # recorded only when given, so builds made before the flag still resume
         out["suite_weights"] = list(FLAGS.suite_weights)
+    if FLAGS.datastore_source != "demos":  # likewise
+        out["datastore_source"] = FLAGS.datastore_source
     if FLAGS.label_sigma_bins != 2.0:  # likewise
         out["label_sigma_bins"] = FLAGS.label_sigma_bins
     return out
@@ -282,8 +292,11 @@ def main(argv):
         raise app.UsageError(f"--skip: unknown stages {bad}; valid: {', '.join(SKIPPABLE)}")
     if FLAGS.steps < (0 if FLAGS.start else 1):
         raise app.UsageError(f"--steps must be >= 1 (>= 0 with --start), got {FLAGS.steps}")
-    if FLAGS.drafter_rollout_episodes < 0:
-        raise app.UsageError(f"--drafter_rollout_episodes must be >= 0, got {FLAGS.drafter_rollout_episodes}")
+    if FLAGS.rollout_episodes < 0:
+        raise app.UsageError(f"--rollout_episodes must be >= 0, got {FLAGS.rollout_episodes}")
+    if FLAGS.datastore_source == "rollouts" and not FLAGS.rollout_episodes and "datastore" not in FLAGS.skip:
+        raise app.UsageError("--datastore_source=rollouts builds the datastore from the target's own rollouts: "
+                             "give --rollout_episodes > 0 (episodes per task)")
     for name in ("demo_episodes", "dagger_episodes", "dagger_steps", "drafter_steps", "num_envs",
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:
