@@ -23,9 +23,13 @@ rounds for what they leave):
   + this feature    the same with this step's feature (an upper bound: it needs the prefill
                     before the query, one more target pass per step)
 
+  ... + recent actions  the same with the env's last `recent_candidates` executed actions
+                    verified beside the retrieved ones, as `--method=heisd` does; and the
+                    recent actions alone
+
 Prints per datastore: entries, target passes per action with retrieval first (TPA), the
-retrieval draft's mean accepted length and the share of steps whose draft was accepted
-whole; the drafter alone's TPA (once) as the reference.
+best candidate's mean accepted length and the share of steps where one was accepted whole;
+the drafter alone's TPA (once) as the reference.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import checkpoint, methods, results_io, retrieval, vla, vla_policy
-from heisd_jax.offline import boundary
+from heisd_jax.offline import boundary, datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -72,6 +76,18 @@ def _record(env, learner, tids, keys, steps, history):
     cols["label"] = np.concatenate([traj["action"][: n[b], b] for b in range(len(n)) if n[b]])
     cols["start"] = np.concatenate([np.arange(n[b]) == 0 for b in range(len(n)) if n[b]])
     return cols
+
+
+def _recent(tok, cols, r):
+    """The env's last r executed actions before each step as token ids [N, r, 7], newest
+    first, and which exist [N, r] (fewer at an episode's start)."""
+    starts = np.flatnonzero(cols["start"])
+    ids, valid = [], []
+    for a, b in zip(starts, list(starts[1:]) + [len(cols["start"])]):
+        hist = datastore.episode_history(np.asarray(cols["action"][a:b], np.float32), r)[:, ::-1]
+        ids.append(np.asarray(tok.encode(jnp.asarray(hist))))
+        valid.append(np.arange(b - a)[:, None] > np.arange(r)[None, :])
+    return np.concatenate(ids).astype(np.int32), np.concatenate(valid)
 
 
 def _features(params, cfg, cols, batch):
@@ -138,28 +154,40 @@ def main(argv):
 
     values = {"target": np.asarray(tok.encode(jnp.asarray(held["action"]))),
               "expert": np.asarray(tok.encode(jnp.asarray(held["label"])))}
-    variants = {  # name: (store, held-out keys or None for make_keys)
-        "shipped": (shipped, None),
-        "rollouts/target": (_store(base, values["target"], held["task"]), None),
-        "rollouts/expert": (_store(base, values["expert"], held["task"]), None),
-        "rollouts/target + prev feature": (_store(with_feat(base, prev_feat), values["target"], held["task"]),
-                                           with_feat(qbase, qprev_feat)),
-        "rollouts/target + this feature": (_store(with_feat(base, feat), values["target"], held["task"]),
-                                           with_feat(qbase, qfeat)),
+    def variant(store, keys=None, recent=False, retrieved=True):
+        """A datastore to measure: its store, the held-out keys (None: make_keys), whether the
+        env's recent actions are verified too and whether retrieved candidates are."""
+        return dict(store=store, keys=keys, recent=recent, retrieved=retrieved)
+
+    variants = {
+        "shipped": variant(shipped),
+        "rollouts/target": variant(_store(base, values["target"], held["task"])),
+        "rollouts/expert": variant(_store(base, values["expert"], held["task"])),
+        "rollouts/target + prev feature": variant(_store(with_feat(base, prev_feat), values["target"], held["task"]),
+                                                  with_feat(qbase, qprev_feat)),
+        "rollouts/target + this feature": variant(_store(with_feat(base, feat), values["target"], held["task"]),
+                                                  with_feat(qbase, qfeat)),
     }
+    for name in ("shipped", "rollouts/target", "rollouts/target + prev feature"):  # as heisd verifies them
+        variants[f"{name} + recent actions"] = dict(variants[name], recent=True)
+    n = hcfg.n_candidates
+    nowhere = _store(base[:n], values["target"][:n], [-1] * n)  # no query's task: nothing retrieved
+    variants["recent actions alone"] = variant(nowhere, recent=True, retrieved=False)
+    recent, recent_valid = _recent(tok, query, hcfg.recent_candidates)
     rows = []
-    print(f"\n{'datastore':<34}{'entries':>8}{'TPA retr':>10}{'accepted':>10}{'whole':>8}{'TPA draft':>11}")
-    for name, (store, qkeys) in variants.items():
+    print(f"\n{'datastore':<46}{'entries':>8}{'TPA retr':>10}{'accepted':>10}{'whole':>8}{'TPA draft':>11}")
+    for name, v in variants.items():
         steps = {**{k: query[k] for k in ("image", "instruction", "proprio", "prev", "task", "feat")},
-                 **({} if qkeys is None else {"key": qkeys})}
-        m = boundary.measure({"target": params, "drafter": dparams, "store": store}, cfg, hcfg, key_spec, tok, steps,
-                             FLAGS.batch, drafter_alone=not rows)  # the drafter's TPA does not depend on the store
-        row = {"datastore": name, "entries": int(store.size),
+                 **({} if v["keys"] is None else {"key": v["keys"]}),
+                 **({"recent": recent, "recent_valid": recent_valid} if v["recent"] else {})}
+        m = boundary.measure({"target": params, "drafter": dparams, "store": v["store"]}, cfg, hcfg, key_spec, tok,
+                             steps, FLAGS.batch, drafter_alone=not rows)  # the drafter's TPA: the same for every store
+        row = {"datastore": name, "entries": int(v["store"].size) if v["retrieved"] else 0, "recent": v["recent"],
                **boundary.group_table(m, np.zeros(len(m["metric"]), np.int32), ("all",))[0]}
         if rows:  # measured once, on the first store
             del row["tpa_drafter"]
         rows.append(row)
-        print(f"{name:<34}{row['entries']:>8}{row['tpa_retrieval']:>10.2f}{row['retrieval_accepted']:>10.2f}"
+        print(f"{name:<46}{row['entries']:>8}{row['tpa_retrieval']:>10.2f}{row['retrieval_accepted']:>10.2f}"
               f"{row['retrieval_whole']:>8.1%}{rows[0]['tpa_drafter']:>11.2f}", flush=True)
     record = {**results_io.provenance(cli.command_line()), "store_steps": len(held["task"]),
               "held_out_steps": len(query["task"]), "settings": settings, "rows": rows}

@@ -51,17 +51,21 @@ def measure(params: dict, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, key_spe
     "store"}; steps: image [N, H, W, 3], instruction [N, L], proprio [N, 8], prev (the
     actions before each step) [N, history, 7], task [N], feat (kinematic features) [N, 5],
     and optionally key [N, dim]: the retrieval keys themselves, for a store keyed otherwise
-    than by `key_spec` (default: `retrieval.make_keys` of prev and proprio).
+    than by `key_spec` (default: `retrieval.make_keys` of prev and proprio); recent [N, R, 7]
+    token ids with recent_valid [N, R]: the env's last executed actions, verified after the
+    retrieved candidates (as `hybrid.step` does with `recent_candidates`).
     Decoded `batch` steps at a time, the last batch padded by wrapping (static shape).
     `drafter_alone=False` skips the drafter-only decode (its TPA is then NaN), for comparing
     datastores on the same steps."""
     metric = np.asarray(kinematics.fused_metric(jnp.asarray(steps["feat"]), hcfg.metric))
 
     @jax.jit
-    def both_ways(p, image, instruction, proprio, prev, task, key):
+    def both_ways(p, image, instruction, proprio, prev, task, key, recent):
         obs = vla.Observation(image=image, instruction=instruction, proprio=proprio)
         key = retrieval.make_keys(key_spec, tok, prev, proprio) if key is None else key
         cand, dist, valid = retrieval.query(p["store"], key, task, hcfg.n_candidates, hcfg.max_dist)
+        if recent is not None:
+            cand, valid = jnp.concatenate([cand, recent[0]], 1), jnp.concatenate([valid, recent[1]], 1)
         no = jnp.zeros(task.shape, bool)
         _, r = hybrid.decode(p, cfg, hcfg, obs, cand, valid, ~no, no)
         alone = hybrid.decode(p, cfg, hcfg, obs, cand, valid, no, no)[1]["target_passes"] if drafter_alone else \
@@ -74,7 +78,9 @@ def measure(params: dict, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, key_spe
         idx = np.arange(s, s + batch) % n
         r = jax.device_get(both_ways(params, *(jnp.asarray(steps[k][idx]) for k in
                                                ("image", "instruction", "proprio", "prev", "task")),
-                                     None if "key" not in steps else jnp.asarray(steps["key"][idx])))
+                                     None if "key" not in steps else jnp.asarray(steps["key"][idx]),
+                                     None if "recent" not in steps else (jnp.asarray(steps["recent"][idx]),
+                                                                         jnp.asarray(steps["recent_valid"][idx]))))
         keep = min(batch, n - s)
         for k, v in zip(cols, r):
             cols[k].append(np.asarray(v)[:keep])
