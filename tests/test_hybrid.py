@@ -331,7 +331,8 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
 def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
     """`boundary.measure` (the calibration's and the datastore study's decode) with the keys
     passed in gives what it gives computing them from the action history, and queries with
-    the keys given; skipping the drafter-only decode changes no other column. The store holds
+    the keys given; recent candidates given are verified too; skipping the drafter-only
+    decode changes no other column. The store holds
     each row's AR action under the row's own key (accepted whole) and an action a full half
     of the bins away under a far key."""
     from heisd_jax.offline import boundary  # noqa: PLC0415
@@ -353,7 +354,11 @@ def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
     own = boundary.measure(p, CFG, hcfg, spec, tok, steps, batch=4)
     given = boundary.measure(p, CFG, hcfg, spec, tok, {**steps, "key": keys}, batch=4, drafter_alone=False)
     to_far = boundary.measure(p, CFG, hcfg, spec, tok, {**steps, "key": far}, batch=4, drafter_alone=False)
-    assert (own["accepted"] == 7).all() and (to_far["accepted"] < 7).all()
+    # the env's recent actions, verified beside the retrieved ones: the AR action among them is accepted whole
+    recent = np.stack([wrong, ar_tokens], 1)
+    with_recent = boundary.measure(p, CFG, hcfg, spec, tok, {**steps, "key": far, "recent": recent,
+                                                             "recent_valid": np.ones((B, 2), bool)}, batch=4)
+    assert (own["accepted"] == 7).all() and (to_far["accepted"] < 7).all() and (with_recent["accepted"] == 7).all()
     for k in ("metric", "tpa_retrieval", "accepted", "dist"):
         np.testing.assert_array_equal(own[k], given[k])
     assert np.isnan(given["tpa_drafter"]).all() and np.isfinite(own["tpa_drafter"]).all()
