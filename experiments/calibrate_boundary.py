@@ -22,8 +22,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import numpy as np
 
-from envs import demos, language, tasks as tasks_lib
-from heisd_jax import checkpoint, data, methods, results_io, retrieval
+from envs import demos, tasks as tasks_lib
+from heisd_jax import data, methods, results_io
 from heisd_jax.offline import boundary, datastore
 from experiments import cli
 
@@ -80,23 +80,18 @@ def main(argv):
     settings = dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv)
     try:
         settings = methods.check_settings("heisd", settings)
-        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-        dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg, params)
-        store, key_spec, meta = retrieval.load(FLAGS.datastore, tok, checkpoint.fingerprint(params))
+        stack, cfg, tok, hcfg, key_spec, meta = methods.load_hybrid(
+            "heisd", cli.paths("checkpoint", "drafter", "datastore"), settings)
         ds = demos.DemoDataset(FLAGS.demos)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     held = meta.get("holdout_episodes") or []
     if not held:
         raise app.UsageError(f"{FLAGS.datastore} holds out no demo episodes: rebuild it with --holdout > 0")
-    cal = methods.load_calibration(FLAGS.datastore, meta)
-    hcfg = methods.hybrid_config("heisd", settings, cal)
-    hcfg.check_fits(cfg)
     executed = None if meta.get("values") != "rollout" else \
-        (lambda episodes: datastore.executed_actions(params, cfg, tok, FLAGS.demos, episodes))
+        (lambda episodes: datastore.executed_actions(stack["target"], cfg, tok, FLAGS.demos, episodes))
     steps = _held_out_steps(FLAGS.demos, ds, held, key_spec, FLAGS.max_steps, executed)
-    p = {"target": params, "drafter": dparams, "store": store}
-    measured = boundary.measure(p, cfg, hcfg, key_spec, tok, steps, FLAGS.batch)
+    measured = boundary.measure(stack, cfg, hcfg, key_spec, tok, steps, FLAGS.batch)
     result = boundary.calibrate(measured, rule, hcfg.boundary.min_dwell,
                                 about={"held_out_episodes": len(held), "settings": settings,
                                        "metric_scales": list(hcfg.metric.scales)})

@@ -194,3 +194,8 @@ def define_paths(*names: str) -> None:
         what, text = PATH_FLAGS[name]
         flags.DEFINE_string(name, str(defaults[name]), text)
         existing_dir(name, what)
+
+
+def paths(*names: str) -> dict:
+    """The path flags `define_paths` made, as `methods.load_hybrid` takes them."""
+    return {name: Path(getattr(flags.FLAGS, name)) for name in names}

@@ -45,9 +45,9 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import expert, language, rollout, tasks as tasks_lib
+from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, retrieval, vla, vla_policy
+from heisd_jax import methods, results_io, retrieval, vla, vla_policy
 from heisd_jax.offline import boundary, datastore
 from experiments import cli
 
@@ -122,14 +122,11 @@ def main(argv):
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         settings = methods.check_settings("heisd", dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv))
         env = TabletopEnv(task_list, methods.env_config("heisd", FLAGS.checkpoint))
-        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-        dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg, params)
-        shipped, key_spec, meta = retrieval.load(FLAGS.datastore, tok, checkpoint.fingerprint(params))
+        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", cli.paths("checkpoint", "drafter", "datastore"),
+                                                                 settings, env)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
-    hcfg = methods.hybrid_config("heisd", settings, methods.load_calibration(FLAGS.datastore, meta))
-    hcfg.check_fits(cfg)
-    cfg, params, dparams = methods.in_numerics(cfg, methods.HeiSDSettings(**settings), params, dparams)
+    params, shipped = stack["target"], stack["store"]
     learner = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
     t0 = time.perf_counter()
@@ -180,7 +177,7 @@ def main(argv):
         steps = {**{k: query[k] for k in ("image", "instruction", "proprio", "prev", "task", "feat")},
                  **({} if v["keys"] is None else {"key": v["keys"]}),
                  **({"recent": recent, "recent_valid": recent_valid} if v["recent"] else {})}
-        m = boundary.measure({"target": params, "drafter": dparams, "store": v["store"]}, cfg, hcfg, key_spec, tok,
+        m = boundary.measure(dict(stack, store=v["store"]), cfg, hcfg, key_spec, tok,
                              steps, FLAGS.batch, drafter_alone=not rows)  # the drafter's TPA: the same for every store
         row = {"datastore": name, "entries": int(v["store"].size) if v["retrieved"] else 0, "recent": v["recent"],
                **boundary.group_table(m, np.zeros(len(m["metric"]), np.int32), ("all",))[0]}

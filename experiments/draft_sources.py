@@ -29,9 +29,9 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import expert, language, rollout, tasks as tasks_lib
+from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, retrieval, vla_policy
+from heisd_jax import methods, results_io, vla_policy
 from heisd_jax.offline import boundary
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
@@ -58,17 +58,12 @@ def main(argv):
     settings = dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-        settings = methods.check_settings("heisd", settings)
         env = TabletopEnv(task_list, methods.env_config("heisd", FLAGS.checkpoint))
-        params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-        dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg, params)
-        store, key_spec, meta = retrieval.load(FLAGS.datastore, tok, checkpoint.fingerprint(params))
+        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", cli.paths("checkpoint", "drafter", "datastore"),
+                                                                 settings, env)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
-    hcfg = methods.hybrid_config("heisd", settings, methods.load_calibration(FLAGS.datastore, meta))
-    hcfg.check_fits(cfg)
-    cfg, params, dparams = methods.in_numerics(cfg, methods.HeiSDSettings(**settings), params, dparams)
-    learner = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
+    learner = vla_policy.decoding_policy("ar", stack["target"], cfg, tok, vla_policy.ar)
 
     n = FLAGS.envs
     tids, keys = env.cycling_eval_starts(n)
@@ -80,8 +75,7 @@ def main(argv):
                                               np.asarray(env.global_index)[tids], key_spec.history)
     print(f"recorded {n} envs x {FLAGS.steps} steps: {len(phase)} running steps in {time.perf_counter() - t0:.0f}s",
           flush=True)
-    measured = boundary.measure({"target": params, "drafter": dparams, "store": store}, cfg, hcfg, key_spec, tok,
-                                steps, FLAGS.batch)
+    measured = boundary.measure(stack, cfg, hcfg, key_spec, tok, steps, FLAGS.batch)
     by_phase = boundary.group_table(measured, phase, expert.PHASE_NAMES)
     _, by_metric = boundary.metric_table(measured, FLAGS.bins)
     _print("phase", [r["group"] for r in by_phase], by_phase)

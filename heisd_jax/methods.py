@@ -315,21 +315,37 @@ def _as_ar(name: str, params, cfg: vla.VLAConfig, tok, table) -> Policy:
     return dataclasses.replace(policy, meta=dict(policy.meta, cost_table=table, runs_as_ar=True))
 
 
+def load_hybrid(name: str, paths: dict, given: dict, env: TabletopEnv | None = None):
+    """What a hybrid method (`name`: retrieval or heisd) runs with: the target, drafter and
+    datastore at `paths` ("checkpoint", "drafter", "datastore"), its config at the settings
+    `given` (checked) with the datastore's calibration, in the settings' numerics. Returns
+    ({"target", "drafter", "store"}, model config, tokenizer, HybridConfig, key spec,
+    datastore meta). With `env`, refuses a target that does not take its images or a
+    datastore without entries for some of its tasks."""
+    given = check_settings(name, given)
+    if env is None:
+        params, cfg, tok, _ = checkpoint.load_policy(paths["checkpoint"], text_vocab=language.VOCAB)
+    else:
+        params, cfg, tok = _load_target(env, paths["checkpoint"])
+    dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
+    store, key_spec, meta = retrieval.load(paths["datastore"], tok, checkpoint.fingerprint(params))
+    missing = [] if env is None else \
+        sorted(set(env.global_index.tolist()) - set(np.unique(np.asarray(store.task)).tolist()))
+    if missing:
+        raise ValueError(f"datastore {paths['datastore']} has no entries for tasks "
+                         f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
+    hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
+    hcfg.check_fits(cfg)
+    cfg, params, dparams = in_numerics(cfg, get(name).settings(**given), params, dparams)
+    return {"target": params, "drafter": dparams, "store": store}, cfg, tok, hcfg, key_spec, meta
+
+
 def _build_hybrid(name: str):
     def build(env: TabletopEnv, paths: dict, given: dict, *, batch_size: int | None = None,
               cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, calibrate_costs: bool = False,
               log: Callable[[str], None] = print) -> Policy:
-        params, cfg, tok = _load_target(env, paths["checkpoint"])
-        dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
-        store, key_spec, meta = retrieval.load(paths["datastore"], tok, checkpoint.fingerprint(params))
-        missing = sorted(set(env.global_index.tolist()) - set(np.unique(np.asarray(store.task)).tolist()))
-        if missing:
-            raise ValueError(f"datastore {paths['datastore']} has no entries for tasks "
-                             f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
-        hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
-        hcfg.check_fits(cfg)
-        cfg, params, dparams = in_numerics(cfg, get(name).settings(**given), params, dparams)
-        all_params = {"target": params, "drafter": dparams, "store": store}
+        all_params, cfg, tok, hcfg, key_spec, _ = load_hybrid(name, paths, given, env)
+        params = all_params["target"]
         table = None
         if hcfg.budget.mode == "auto":
             if batch_size is None or batch_size < 1:
