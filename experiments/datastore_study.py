@@ -94,22 +94,11 @@ def _features(params, cfg, cols, batch):
     """The target's last-layer feature at the last prompt position of every step [N, D], and
     the previous step's (zeros at an episode's start)."""
     fn = jax.jit(lambda p, im, ins, pr: vla.prefill(p, cfg, vla.Observation(image=im, instruction=ins, proprio=pr))[1])
-    n = len(cols["task"])
-    out = []
-    for s in range(0, n, batch):
-        idx = np.arange(s, s + batch) % n
-        out.append(np.asarray(fn(params, *(jnp.asarray(cols[k][idx]) for k in ("image", "instruction", "proprio"))))
-                   [: min(batch, n - s)])
-    feat = np.concatenate(out).astype(np.float32)
+    feat = datastore.in_batches(lambda idx: fn(params, *(cols[k][idx] for k in ("image", "instruction", "proprio"))),
+                                len(cols["task"]), batch).astype(np.float32)
     prev = np.concatenate([np.zeros_like(feat[:1]), feat[:-1]])
     prev[cols["start"]] = 0.0
     return feat, prev
-
-
-def _store(keys, tokens, task) -> retrieval.Datastore:
-    keys = jnp.asarray(keys, jnp.float32)
-    return retrieval.Datastore(keys=keys, sq_norms=(keys * keys).sum(-1), tokens=jnp.asarray(tokens, jnp.int32),
-                               task=jnp.asarray(task, jnp.int32))
 
 
 def main(argv):
@@ -122,8 +111,8 @@ def main(argv):
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         settings = methods.check_settings("heisd", dict(kv.split("=", 1) for kv in FLAGS.settings.split(",") if kv))
         env = TabletopEnv(task_list, methods.env_config("heisd", FLAGS.checkpoint))
-        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", cli.paths("checkpoint", "drafter", "datastore"),
-                                                                 settings, env)
+        paths = cli.paths("checkpoint", "drafter", "datastore")
+        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", paths, settings, env)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     params, shipped = stack["target"], stack["store"]
@@ -151,24 +140,26 @@ def main(argv):
 
     values = {"target": np.asarray(tok.encode(jnp.asarray(held["action"]))),
               "expert": np.asarray(tok.encode(jnp.asarray(held["label"])))}
+
     def variant(store, keys=None, recent=False, retrieved=True):
         """A datastore to measure: its store, the held-out keys (None: make_keys), whether the
         env's recent actions are verified too and whether retrieved candidates are."""
         return dict(store=store, keys=keys, recent=recent, retrieved=retrieved)
 
+    def rollouts(values_of, keys=base, query_keys=None):
+        return variant(retrieval.Datastore.of(keys, values[values_of], held["task"]), query_keys)
+
     variants = {
         "shipped": variant(shipped),
-        "rollouts/target": variant(_store(base, values["target"], held["task"])),
-        "rollouts/expert": variant(_store(base, values["expert"], held["task"])),
-        "rollouts/target + prev feature": variant(_store(with_feat(base, prev_feat), values["target"], held["task"]),
-                                                  with_feat(qbase, qprev_feat)),
-        "rollouts/target + this feature": variant(_store(with_feat(base, feat), values["target"], held["task"]),
-                                                  with_feat(qbase, qfeat)),
+        "rollouts/target": rollouts("target"),
+        "rollouts/expert": rollouts("expert"),
+        "rollouts/target + prev feature": rollouts("target", with_feat(base, prev_feat), with_feat(qbase, qprev_feat)),
+        "rollouts/target + this feature": rollouts("target", with_feat(base, feat), with_feat(qbase, qfeat)),
     }
     for name in ("shipped", "rollouts/target", "rollouts/target + prev feature"):  # as heisd verifies them
         variants[f"{name} + recent actions"] = dict(variants[name], recent=True)
     n = hcfg.n_candidates
-    nowhere = _store(base[:n], values["target"][:n], [-1] * n)  # no query's task: nothing retrieved
+    nowhere = retrieval.Datastore.of(base[:n], values["target"][:n], [-1] * n)  # no query's task: nothing retrieved
     variants["recent actions alone"] = variant(nowhere, recent=True, retrieved=False)
     recent, recent_valid = _recent(tok, query, hcfg.recent_candidates)
     rows = []

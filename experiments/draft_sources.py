@@ -59,8 +59,8 @@ def main(argv):
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         env = TabletopEnv(task_list, methods.env_config("heisd", FLAGS.checkpoint))
-        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", cli.paths("checkpoint", "drafter", "datastore"),
-                                                                 settings, env)
+        paths = cli.paths("checkpoint", "drafter", "datastore")
+        stack, cfg, tok, hcfg, key_spec, _ = methods.load_hybrid("heisd", paths, settings, env)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     learner = vla_policy.decoding_policy("ar", stack["target"], cfg, tok, vla_policy.ar)

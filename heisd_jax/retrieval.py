@@ -54,6 +54,13 @@ class Datastore:
     def size(self) -> int:
         return self.tokens.shape[0]
 
+    @classmethod
+    def of(cls, keys, tokens, task) -> "Datastore":
+        """A datastore of entries: keys [N, dim], value token ids [N, 7], global task indices [N]."""
+        keys = jnp.asarray(keys, jnp.float32)
+        return cls(keys=keys, sq_norms=(keys * keys).sum(-1), tokens=jnp.asarray(tokens, jnp.int32),
+                   task=jnp.asarray(task, jnp.int32))
+
 
 def make_keys(spec: KeySpec, tok: ActionTokenizer, prev_actions, proprio) -> jnp.ndarray:
     """Keys [..., dim] from the last `history` actions [..., history, 7] (oldest first; zeros
@@ -103,6 +110,4 @@ def load(path: str | os.PathLike, tok: ActionTokenizer, target_fingerprint: str)
     spec = KeySpec(**meta["key_spec"])
     if keys.shape != (meta["size"], spec.dim) or tokens.shape != (meta["size"], ACTION_DIM):
         raise ValueError(f"datastore {path}: arrays {keys.shape}/{tokens.shape} do not match its metadata")
-    store = Datastore(keys=jnp.asarray(keys), sq_norms=jnp.asarray((keys * keys).sum(-1)), tokens=jnp.asarray(tokens),
-                      task=jnp.asarray(task))
-    return store, spec, meta
+    return Datastore.of(keys, tokens, task), spec, meta

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import hybrid, kinematics, retrieval, vla
-from heisd_jax.offline.datastore import episode_history
+from heisd_jax.offline.datastore import episode_history, in_batches
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 
@@ -72,19 +72,12 @@ def measure(params: dict, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, key_spe
             jnp.full(task.shape, jnp.nan)
         return r["target_passes"], r["retrieval_accepted"], alone, dist[:, 0]
 
-    n = len(metric)
-    cols = {k: [] for k in MEASURED[1:]}
-    for s in range(0, n, batch):
-        idx = np.arange(s, s + batch) % n
-        r = jax.device_get(both_ways(params, *(jnp.asarray(steps[k][idx]) for k in
-                                               ("image", "instruction", "proprio", "prev", "task")),
-                                     None if "key" not in steps else jnp.asarray(steps["key"][idx]),
-                                     None if "recent" not in steps else (jnp.asarray(steps["recent"][idx]),
-                                                                         jnp.asarray(steps["recent_valid"][idx]))))
-        keep = min(batch, n - s)
-        for k, v in zip(cols, r):
-            cols[k].append(np.asarray(v)[:keep])
-    return {"metric": metric, **{k: np.concatenate(v) for k, v in cols.items()}}
+    def rows(idx):
+        cols = (jnp.asarray(steps[k][idx]) for k in ("image", "instruction", "proprio", "prev", "task"))
+        return both_ways(params, *cols, None if "key" not in steps else jnp.asarray(steps["key"][idx]),
+                         None if "recent" not in steps else (jnp.asarray(steps["recent"][idx]),
+                                                             jnp.asarray(steps["recent_valid"][idx])))
+    return {"metric": metric, **dict(zip(MEASURED[1:], in_batches(rows, len(metric), batch)))}
 
 
 def _row(measured: dict, m: np.ndarray) -> dict:

@@ -42,8 +42,7 @@ def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
         raise ValueError("no episodes to build a datastore from")
     k = np.asarray(make_keys(spec, tok, np.concatenate(hist), np.concatenate(props)), np.float32)
     tokens = np.asarray(tok.encode(jnp.asarray(np.concatenate(acts))))
-    return Datastore(keys=jnp.asarray(k), sq_norms=jnp.asarray((k * k).sum(-1)),
-                     tokens=jnp.asarray(tokens, jnp.int32), task=jnp.asarray(np.concatenate(task)))
+    return Datastore.of(k, tokens, np.concatenate(task))
 
 
 def subsample(store: Datastore, stride: int) -> Datastore:
@@ -134,15 +133,22 @@ def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | N
     from heisd_jax import data, vla  # noqa: PLC0415
 
     steps = data.load_steps(str(path), episodes)
-    n = len(steps.action)
     decode = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
-    out = []
+    return in_batches(lambda idx: decode(tparams, vla.Observation(image=steps.image[idx],
+                                                                  instruction=steps.instruction[idx],
+                                                                  proprio=steps.proprio[idx])),
+                      len(steps.action), batch).astype(np.int32)
+
+
+def in_batches(fn, n: int, batch: int):
+    """fn(rows) over rows 0..n-1 in batches of `batch` (the last one wrapped around, so one
+    compiled shape serves every batch); its outputs (arrays or a pytree of them, batched on
+    the first axis) gathered on the host and concatenated [n, ...]."""
+    outs = []
     for s in range(0, n, batch):
-        idx = np.arange(s, s + batch) % n  # static shape: wrap the last batch
-        obs = vla.Observation(image=jnp.asarray(steps.image[idx]), instruction=jnp.asarray(steps.instruction[idx]),
-                              proprio=jnp.asarray(steps.proprio[idx]))
-        out.append(np.asarray(decode(tparams, obs))[: min(batch, n - s)])
-    return np.concatenate(out).astype(np.int32)
+        out = jax.device_get(fn(np.arange(s, s + batch) % n))
+        outs.append(jax.tree.map(lambda x, k=min(batch, n - s): np.asarray(x)[:k], out))
+    return jax.tree.map(lambda *xs: np.concatenate(xs), *outs)
 
 
 def with_values(store: Datastore, tokens: np.ndarray) -> Datastore:
