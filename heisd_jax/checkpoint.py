@@ -99,7 +99,9 @@ def _restore_params(path: Path, mngr, step, abstract, meta: dict):
         if tuple(a.shape) != tuple(np.shape(b)):
             raise CheckpointError(f"checkpoint {path}: parameter shape {np.shape(b)} does not match config {a.shape}")
     verify_checksum(path, params, meta)
-    return params
+    # On the device once: a jitted call given host (numpy) leaves copies every one of them in
+    # on every call (32 MB for the shipped target: ~2.5 ms on an H100 at batch 1, ~1.7 ms on CPU).
+    return jax.device_put(params)
 
 
 def checksum(params) -> str:

@@ -53,6 +53,7 @@ def test_round_trip_records_and_verifies_the_checksum(saved):
     assert cfg2 == CFG and meta["checksum"] == checkpoint.checksum(params)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p2)):
         np.testing.assert_array_equal(a, b)
+        assert isinstance(b, jax.Array)  # on the device: a jitted call does not copy it in each time
 
 
 def test_checksum_changes_with_any_weight(saved):
