@@ -1,0 +1,113 @@
+"""Closed-loop success of evaluations against a baseline evaluated on the same initial states:
+per suite, the success rate, its difference from the baseline, and the paired counts (episodes
+of one initial state that succeed under the baseline only / under the other only); per
+evaluation, steps and target passes per episode, the share of skipped steps and whether every
+suite is within --tolerance points of the baseline (the success guard of issue 23).
+
+  python -m experiments.compare_evals experiments/results/eval_ar_h100.json \\
+      experiments/results/eval_heisd_fixed_h100.json [MORE.json ...] [--tolerance=2]
+
+Each file is an `experiments.evaluate --out` result; all must hold the same tasks with the
+same number of episodes each (the evaluator's fixed initial states pair them).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from absl import app, flags
+
+from experiments import cli
+
+FLAGS = flags.FLAGS
+flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the baseline, in points, on any suite.")
+
+
+def load(path: str) -> dict:
+    try:
+        d = json.loads(Path(path).read_text())
+        d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
+    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not an experiments.evaluate result ({type(e).__name__}: {e})") from e
+    return d
+
+
+def label(result: dict) -> str:
+    s = dict(result.get("settings", {}))
+    method = s.pop("method", "?")
+    shown = {k: v for k, v in s.items() if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter")}
+    return method + (":" + ",".join(f"{k}={Path(str(v)).name if k == 'datastore' else v}"
+                                    for k, v in sorted(shown.items())) if shown else "")
+
+
+def compare(base: dict, other: dict, tolerance: float) -> dict:
+    """Per-suite and overall comparison of `other` with `base` (both evaluate results)."""
+    eb, eo = base["episodes"], other["episodes"]
+    if sorted(eb) != sorted(eo) or any(len(eb[t]) != len(eo[t]) for t in eb):
+        raise ValueError("the evaluations hold different tasks or episode counts: they are not paired")
+    suite_of = {t: v["suite"] for t, v in base["summary"]["tasks"].items()}
+    suites: dict[str, dict] = {}
+    for task in base.get("settings", {}).get("tasks") or eb:  # the evaluation's order of tasks (and suites)
+        s = suites.setdefault(suite_of[task], dict(episodes=0, base=0, other=0, base_only=0, other_only=0))
+        for a, b in zip(eb[task], eo[task]):
+            s["episodes"] += 1
+            s["base"] += a["success"]
+            s["other"] += b["success"]
+            s["base_only"] += a["success"] and not b["success"]
+            s["other_only"] += b["success"] and not a["success"]
+    for s in suites.values():
+        s["base_rate"], s["rate"] = s["base"] / s["episodes"], s["other"] / s["episodes"]
+        s["diff_points"] = 100.0 * (s["rate"] - s["base_rate"])
+    episodes = [e for t in eo for e in eo[t]]
+    steps = float(np.mean([e["steps"] for e in episodes]))
+    passes = [e.get("decode", {}).get("target_passes") for e in episodes]
+    skipped = sum(e.get("decode", {}).get("skipped", 0.0) for e in episodes)
+    return dict(
+        label=label(other), suites=suites,
+        mean_rate=float(np.mean([s["rate"] for s in suites.values()])),
+        base_mean_rate=float(np.mean([s["base_rate"] for s in suites.values()])),
+        worst_diff_points=min(s["diff_points"] for s in suites.values()),
+        guard=all(s["diff_points"] >= -tolerance for s in suites.values()),
+        steps_per_episode=steps,
+        target_passes_per_episode=float(np.mean(passes)) if all(p is not None for p in passes) else None,
+        skipped_share=skipped / sum(e["steps"] for e in episodes),
+        base_only=sum(s["base_only"] for s in suites.values()),
+        other_only=sum(s["other_only"] for s in suites.values()))
+
+
+def table(base: dict, rows: list[dict], tolerance: float) -> str:
+    suites = list(rows[0]["suites"]) if rows else []
+    head = "| evaluation | " + " | ".join(suites) + " | mean | steps / ep | passes / ep | skipped | " \
+           f"base-only / other-only | within {tolerance:g} pts |"
+    lines = [head, "|" + "---|" * (len(suites) + 7)]
+    if rows:
+        r0 = rows[0]
+        lines.append(f"| {label(base)} (baseline) | " + " | ".join(f"{100 * r0['suites'][s]['base_rate']:.1f}%"
+                                                                   for s in suites)
+                     + f" | {100 * r0['base_mean_rate']:.2f}% | | | | | |")
+    for r in rows:
+        cells = " | ".join(f"{100 * r['suites'][s]['rate']:.1f}% ({r['suites'][s]['diff_points']:+.1f})" for s in suites)
+        passes = "-" if r["target_passes_per_episode"] is None else f"{r['target_passes_per_episode']:.0f}"
+        lines.append(f"| {r['label']} | {cells} | {100 * r['mean_rate']:.2f}% | {r['steps_per_episode']:.1f} | "
+                     f"{passes} | {100 * r['skipped_share']:.0f}% | {r['base_only']} / {r['other_only']} | "
+                     f"{'yes' if r['guard'] else 'no'} ({r['worst_diff_points']:+.1f}) |")
+    return "\n".join(lines)
+
+
+def main(argv):
+    if len(argv) < 3:
+        raise app.UsageError("usage: python -m experiments.compare_evals BASELINE.json OTHER.json [OTHER.json ...]")
+    if FLAGS.tolerance < 0:
+        raise app.UsageError(f"--tolerance must be >= 0 points, got {FLAGS.tolerance}")
+    try:
+        base, others = load(argv[1]), [load(p) for p in argv[2:]]
+        rows = [compare(base, o, FLAGS.tolerance) for o in others]
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    print(table(base, rows, FLAGS.tolerance))
+
+
+if __name__ == "__main__":
+    cli.run(main)

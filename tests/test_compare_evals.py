@@ -1,0 +1,46 @@
+"""experiments.compare_evals: paired success counts and the success guard."""
+
+import json
+
+import pytest
+
+from experiments import compare_evals
+
+
+def result(method, successes: dict[str, list[bool]], suite_of: dict[str, str], skipped=0.0):
+    episodes = {t: [dict(success=s, steps=10, decode=dict(target_passes=7.0, skipped=skipped)) for s in ss]
+                for t, ss in successes.items()}
+    return dict(settings=dict(method=method, tasks=list(successes)), episodes=episodes,
+                summary=dict(tasks={t: dict(suite=suite_of[t]) for t in successes}))
+
+
+SUITE_OF = {"a": "spatial", "b": "spatial", "c": "long"}
+BASE = result("ar", {"a": [True, True, False, True], "b": [True] * 4, "c": [True, False, True, True]}, SUITE_OF)
+
+
+def test_paired_counts_rates_and_guard():
+    other = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]},
+                   SUITE_OF, skipped=2.0)
+    r = compare_evals.compare(BASE, other, tolerance=2.0)
+    sp, lo = r["suites"]["spatial"], r["suites"]["long"]
+    assert (sp["base_only"], sp["other_only"], sp["rate"], sp["base_rate"]) == (1, 1, 7 / 8, 7 / 8)
+    assert (lo["base_only"], lo["other_only"], lo["diff_points"]) == (1, 0, -25.0)
+    assert (r["base_only"], r["other_only"], r["guard"], r["worst_diff_points"]) == (2, 1, False, -25.0)
+    assert r["skipped_share"] == pytest.approx(0.2) and r["target_passes_per_episode"] == 7.0
+    assert list(r["suites"]) == ["spatial", "long"]  # the evaluation's order
+    assert compare_evals.compare(BASE, other, tolerance=25.0)["guard"]
+
+
+def test_an_evaluation_against_itself_differs_nowhere():
+    r = compare_evals.compare(BASE, BASE, tolerance=0.0)
+    assert r["guard"] and r["base_only"] == r["other_only"] == 0 and r["mean_rate"] == r["base_mean_rate"]
+
+
+def test_unpaired_evaluations_and_bad_files_are_refused(tmp_path):
+    fewer = result("ar", {"a": [True] * 3, "b": [True] * 4, "c": [True] * 4}, SUITE_OF)
+    with pytest.raises(ValueError, match="not paired"):
+        compare_evals.compare(BASE, fewer, tolerance=2.0)
+    bad = tmp_path / "x.json"
+    bad.write_text(json.dumps({"summary": {}}))
+    with pytest.raises(ValueError, match="not an experiments.evaluate result"):
+        compare_evals.load(str(bad))
