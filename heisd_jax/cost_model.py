@@ -68,7 +68,7 @@ def table_key(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int)
     dev = jax.devices()[0]
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "target": checkpoint.fingerprint(params["target"]), "drafter": checkpoint.fingerprint(params["drafter"]),
-            "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "batch": int(batch),
+            "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll, "batch": int(batch),
             "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}

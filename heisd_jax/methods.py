@@ -52,8 +52,10 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | No
 
 
 def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", *params):
-    """`in_dtype` at a method's settings: their dtype and matmul precision."""
-    return in_dtype(cfg, settings.dtype, *params, matmul_precision=settings.matmul_precision)
+    """`in_dtype` at a method's settings (their dtype and matmul precision), and the
+    inference passes unrolled or not."""
+    cfg, *params = in_dtype(cfg, settings.dtype, *params, matmul_precision=settings.matmul_precision)
+    return (dataclasses.replace(cfg, unroll=settings.unroll), *params)
 
 
 def _setting(default, help: str, choices: tuple[str, ...] | None = None):
@@ -77,6 +79,9 @@ class ARSettings:
                                      "tensor cores for some shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': "
                                      "that tensor-core algorithm for every product, float32 accumulation.",
                                      vla.MATMUL_PRECISIONS)
+    unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
+                            "unrolled: one straight-line program per pass instead of a loop the host drives layer by "
+                            "layer on a GPU; compiles several times longer (and runs slower on a CPU).")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -62,6 +62,8 @@ class VLAConfig:
     dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
     # Precision of float32 matrix products (MATMUL_PRECISIONS); not used in bfloat16.
     matmul_precision: str = "float32"
+    # Inference passes with the decoder layers, and AR's token loop, unrolled (see `VLA`).
+    unroll: bool = False
 
     @property
     def n_patches(self) -> int:
@@ -278,7 +280,9 @@ class VLA(nn.Module):
     """`training`: the decoder layers unrolled instead of scanned, for the teacher-forced pass
     a training step differentiates (the scan's backward stores and copies every layer's
     residuals; docs/target.md has the step times). The same function; inference passes keep
-    the scan, which compiles faster."""
+    the scan, which compiles faster, unless `cfg.unroll`: on a GPU XLA runs a scan's every
+    iteration as its own launch from the host, which bounds a batch-1 decode (BENCHMARKS.md,
+    the host-loop profile), while an unrolled pass is one straight-line program."""
     cfg: VLAConfig
     training: bool = False
 
@@ -290,7 +294,7 @@ class VLA(nn.Module):
         self.blocks = nn.scan(
             DecoderBlock, variable_axes={"params": 0}, split_rngs={"params": True},
             in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
-            unroll=cfg.n_layers if self.training else 1,
+            unroll=cfg.n_layers if self.training or cfg.unroll else 1,
         )(cfg)
         self.final_norm = nn.RMSNorm(dtype=cfg.dtype)
         self.head = nn.Dense(cfg.vocab_size, use_bias=False, dtype=cfg.dtype)
@@ -489,7 +493,7 @@ def ar_decode(params, cfg: VLAConfig, obs: Observation):
         nxt = jnp.argmax(action_logits(cfg, lg[:, 0]), -1) + cfg.first_action_id
         return (cache, nxt), nxt
 
-    _, rest = jax.lax.scan(step, (cache, first), None, length=ACTION_DIM - 1)
+    _, rest = jax.lax.scan(step, (cache, first), None, length=ACTION_DIM - 1, unroll=ACTION_DIM - 1 if cfg.unroll else 1)
     return jnp.concatenate([first[:, None], rest.T], 1), ACTION_DIM
 
 

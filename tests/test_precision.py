@@ -59,3 +59,5 @@ def test_bad_precision_is_refused_with_the_valid_ones():
 def test_method_setting_reaches_the_config():
     cfg, _ = methods.in_dtype(CFG, "float32", {}, matmul_precision="default")
     assert cfg.matmul_precision == "default" and methods.ARSettings().matmul_precision == "float32"
+    cfg, _ = methods.in_numerics(CFG, methods.ARSettings(unroll=True), {})
+    assert cfg.unroll and not methods.ARSettings().unroll and methods.check_settings("ar", {"unroll": "true"})["unroll"]

@@ -1,5 +1,7 @@
 """The VLA's KV cache and decoding: cached == uncached, batched == per-example, commit."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -150,3 +152,14 @@ def test_training_forward_is_the_inference_forward(model):
     logits, hidden = jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t, training=True))(params, obs, toks)
     np.testing.assert_allclose(logits, ref_logits, atol=1e-4)
     np.testing.assert_allclose(hidden, ref_hidden, atol=1e-4)
+
+
+def test_unrolled_inference_decodes_the_same_tokens(model):
+    """`VLAConfig.unroll` (straight-line passes, AR's token loop included) is the same
+    function as the scanned decode: same greedy tokens, same prompt logits."""
+    params, f = model
+    obs = _obs(1)
+    cfg = dataclasses.replace(CFG, unroll=True)
+    np.testing.assert_array_equal(jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])(params, obs), f["ar"](params, obs))
+    np.testing.assert_allclose(jax.jit(lambda p, o: vla.prefill(p, cfg, o)[0])(params, obs),
+                               f["prefill"](params, obs)[0], atol=1e-4)
