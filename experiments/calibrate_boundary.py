@@ -118,6 +118,7 @@ def _plot(table, tau_on, tau_off, path):
     ax.axvline(tau_on, ls="--", c="gray", label="tau_on / tau_off")
     ax.axvline(tau_off, ls=":", c="gray")
     ax.set_xscale("symlog", linthresh=0.1)
+    ax.set_xlim(left=0)  # the metric is >= 0
     ax.set_xlabel("fused kinematic metric M")
     ax.set_ylabel("tokens per target pass")
     ax.legend(fontsize=8)

@@ -121,6 +121,7 @@ def _plot(by_phase: list[dict], by_metric: list[dict], path: str) -> None:
     b.plot(mid, [ACTION_DIM / r["tpa_retrieval"] for r in by_metric], "o-", label="retrieval drafts (then drafter)")
     b.plot(mid, [ACTION_DIM / r["tpa_drafter"] for r in by_metric], "s-", label="drafter trees")
     b.set_xscale("symlog", linthresh=0.1)
+    b.set_xlim(left=0)  # the metric is >= 0
     whole = b.twinx()
     whole.plot(mid, [r["retrieval_whole"] for r in by_metric], ":", c="gray")
     whole.set_ylim(0, 1)
