@@ -29,6 +29,8 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
     # breakdown splits the method's decode step without remainder.
     assert r["speedup_vs_ar"] == pytest.approx(r["median_ms"]["ar"] / r["median_ms"]["act"])
     assert sum(r["breakdown_ms"].values()) == pytest.approx(r["median_ms"]["act"])
+    m = r["median_ms"]  # a host loop's rate: one decode and one env step per control step
+    assert r["control_steps_per_s"]["act"] == pytest.approx(1e3 / (m["act"] + m["env_step"]))
     assert 0 < r["per_action"]["target_passes"] <= 8
     assert any((tmp_path / "trace").rglob("*.xplane.pb"))
     assert "act vs AR at batch 2" in out.stdout
