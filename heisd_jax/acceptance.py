@@ -11,6 +11,7 @@ section 4) decides when a retrieved action is executed without a target pass.
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import jax.numpy as jnp
 
@@ -74,12 +75,18 @@ class SkipConfig:
     n_agree: int = 3
     n_confirm: int = 2  # recent: the last this many verified steps each repeated their previous action
     k_skip: int = 3  # at most this many consecutive skipped target passes
+    # Skip only where the kinematic metric M is at most this (coarse motion; the default: in the
+    # whole retrieval regime). A skipped step repeats or retrieves an action without the target's
+    # look at the image, and its error against the target grows with M (docs/method.md).
+    max_metric: float = math.inf
 
     def __post_init__(self):
         if self.source not in SKIP_SOURCES:
             raise ValueError(f"unknown skip source {self.source!r}; valid: {', '.join(SKIP_SOURCES)}")
-        if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.n_confirm < 1 or self.k_skip < 0:
-            raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, n_confirm >= 1, k_skip >= 0: {self}")
+        if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.n_confirm < 1 or self.k_skip < 0 \
+                or not self.max_metric >= 0:
+            raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, n_confirm >= 1, k_skip >= 0, "
+                             f"max_metric >= 0: {self}")
 
 
 def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand_bins: jnp.ndarray,

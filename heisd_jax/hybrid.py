@@ -399,8 +399,10 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         cand, dist, valid = jax.lax.cond(option == 0, no_query, query, None)
     else:
         cand, dist, valid = query(None)
-    # Skip only while the metric itself is in the retrieval regime (not merely held there by dwell).
-    in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval"))
+    # Skip only while the metric itself is in the retrieval regime (not merely held there by
+    # dwell), and at most the skip's own bound on it.
+    in_regime = use_retrieval & ((metric <= hcfg.boundary.tau_on) | (hcfg.mode == "retrieval")) \
+        & (metric <= hcfg.skip.max_metric)
     if state.recent.shape[1] != hcfg.recent_candidates:
         raise ValueError(f"the state holds {state.recent.shape[1]} recent actions, the config wants "
                          f"{hcfg.recent_candidates}: make it with init_state(batch, key_spec, hcfg)")

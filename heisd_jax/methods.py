@@ -124,6 +124,8 @@ class RetrievalSettings(DrafterSettings):
     n_confirm: int = _setting(_SKIP.n_confirm, "Verify-skip from recent actions: the last this many verified "
                               "steps each accepted their previous action whole.")
     k_skip: int = _setting(_SKIP.k_skip, "Verify-skip: at most this many consecutive skipped target passes.")
+    skip_max_metric: float = _setting(_SKIP.max_metric, "Verify-skip only where the kinematic metric M is at most "
+                                      "this (coarse motion; inf: wherever the row is in retrieval mode).")
     skip_eps: Optional[float] = _setting(None, "Verify-skip: nearest-key squared distance under which retrieval "
                                          f"is trusted (default: the datastore's calibration, else {_SKIP.eps}).")
     r_agree: int = _setting(_SKIP.r_agree, "Verify-skip: the top candidates agree within this many bins.")
@@ -244,7 +246,7 @@ def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hy
     cal = calibration or {}
     spec = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
     skip = acceptance.SkipConfig(enabled=s["skip"], source=s["skip_source"], n_confirm=s["n_confirm"],
-                                 k_skip=s["k_skip"], r_agree=s["r_agree"],
+                                 k_skip=s["k_skip"], r_agree=s["r_agree"], max_metric=s["skip_max_metric"],
                                  eps=s["skip_eps"] if s["skip_eps"] is not None else cal.get("skip_eps", _SKIP.eps))
     metric = kinematics.MetricConfig(scales=tuple(cal.get("metric_scales", kinematics.MetricConfig().scales)))
     bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if s[k] is not None}}

@@ -180,6 +180,35 @@ def test_repeat_skip_executes_the_last_action_after_confirmed_repeats(tiny_hybri
         dataclasses.replace(hcfg, n_candidates=1, recent_candidates=0)
 
 
+def test_skip_max_metric_keeps_rows_in_fine_motion_verified(tiny_hybrid):
+    """SkipConfig.max_metric: rows whose kinematic metric exceeds it verify every step (same
+    tokens); rows below it skip as without the bound."""
+    params, obs, ar_tokens = tiny_hybrid
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    fast = jnp.arange(B) >= B // 2  # the second half of the rows moves: a high metric
+    kin = hybrid.Kinematics(lin_vel=jnp.where(fast[:, None], 0.5, 0.0) * jnp.ones((B, 3)),
+                            ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)), gripper_vel=jnp.zeros((B,)))
+    skips = {}
+    for bound in (float("inf"), 1e-3):
+        hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", n_candidates=0, recent_candidates=2,
+                                   continuation="ar",
+                                   skip=acceptance.SkipConfig(source="recent", n_confirm=1, k_skip=2, max_metric=bound))
+        run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+        state, skipped = hybrid.init_state(B, spec, hcfg), []
+        for _ in range(5):
+            _, tokens, state, stats = run(params, CFG, hcfg, spec, tok, state, obs, kin, jnp.arange(B))
+            np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+            skipped.append(np.asarray(stats["skipped"]))
+        metric = np.asarray(stats["metric"])
+        assert np.all(metric[np.asarray(fast)] > 1e-3) and np.all(metric[~np.asarray(fast)] <= 1e-3)
+        skips[bound] = np.array(skipped)
+    slow = ~np.asarray(fast)
+    assert skips[float("inf")].sum() > 0 and np.all(skips[float("inf")][:, slow] == skips[float("inf")][:, ~slow])
+    np.testing.assert_array_equal(skips[1e-3][:, slow], skips[float("inf")][:, slow])
+    assert not skips[1e-3][:, ~slow].any()
+
+
 def test_compact_rows_runs_the_rows_that_need_the_target_in_the_smallest_bucket():
     assert hybrid.bucket_sizes(16, 4) == (4, 8, 12, 16) and hybrid.bucket_sizes(6, 4) == (2, 3, 5, 6)
     assert hybrid.bucket_sizes(1, 4) == (1,) and hybrid.bucket_sizes(5, 1) == (5,)
