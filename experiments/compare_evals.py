@@ -35,11 +35,13 @@ def load(path: str) -> dict:
 
 
 def label(result: dict) -> str:
+    """The method, the settings its command gave, and the commit it ran at."""
     s = dict(result.get("settings", {}))
     method = s.pop("method", "?")
     shown = {k: v for k, v in s.items() if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter")}
-    return method + (":" + ",".join(f"{k}={Path(str(v)).name if k == 'datastore' else v}"
-                                    for k, v in sorted(shown.items())) if shown else "")
+    settings = ",".join(f"{k}={Path(str(v)).name if k == 'datastore' else v}" for k, v in sorted(shown.items()))
+    commit = result.get("commit")
+    return method + (f":{settings}" if settings else "") + (f" @{commit[:7]}" if commit else "")
 
 
 def compare(base: dict, other: dict, tolerance: float) -> dict:

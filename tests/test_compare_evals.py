@@ -31,6 +31,13 @@ def test_paired_counts_rates_and_guard():
     assert compare_evals.compare(BASE, other, tolerance=25.0)["guard"]
 
 
+def test_labels_name_the_settings_given_and_the_commit():
+    r = dict(result("heisd", {"a": [True]}, SUITE_OF), commit="abcdef0123")
+    r["settings"].update(k_skip=3, datastore="/tmp/x/store_ro", checkpoint="ckpt")
+    assert compare_evals.label(r) == "heisd:datastore=store_ro,k_skip=3 @abcdef0"
+    assert compare_evals.label(BASE) == "ar"
+
+
 def test_an_evaluation_against_itself_differs_nowhere():
     r = compare_evals.compare(BASE, BASE, tolerance=0.0)
     assert r["guard"] and r["base_only"] == r["other_only"] == 0 and r["mean_rate"] == r["base_mean_rate"]
