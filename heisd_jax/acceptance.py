@@ -77,8 +77,9 @@ class SkipConfig:
     k_skip: int = 3  # at most this many consecutive skipped target passes
     # Skip only where the kinematic metric M is at most this (coarse motion; the default: in the
     # whole retrieval regime). A skipped step repeats or retrieves an action without the target's
-    # look at the image, and its error against the target grows with M; a smaller k_skip bounds
-    # that error as well for the same share of skips (docs/method.md), hence off by default.
+    # look at the image, which costs most where the motion is fine (high M); in a replay a
+    # smaller k_skip bounded the error as well for the same share of skips (docs/method.md),
+    # hence off by default.
     max_metric: float = math.inf
 
     def __post_init__(self):
