@@ -193,7 +193,8 @@ def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray
 
 def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
               num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
-              constrain: Callable[[Any], Any] = lambda tree: tree) -> tuple[EpisodeResults, jnp.ndarray]:
+              constrain: Callable[[Any, int], Any] = lambda tree, n: tree,
+              tail_slots: int = 0) -> tuple[EpisodeResults, jnp.ndarray]:
     """Runs the first `n_valid` episodes of a queue (`keys` [N, 2] initial-state keys and
     `task_ids` [N], N static) in `num_slots` envs: when an env's episode ends, its outcome
     is written to the episode's row and the slot takes the next pending episode, so no env
@@ -210,10 +211,21 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     refills (the reset is a large share of the compile). Batch-wide policy-state leaves
     (not per slot) take the first refill's initial values and are kept after. `max_steps`
     bounds the loop's control steps (the whole queue), not an episode (each task's own
-    limit ends its episodes). `constrain` applies a sharding constraint to the per-slot
-    carry (identity on one device). Returns the per-episode results and the number of
-    control steps the loop ran."""
+    limit ends its episodes). `constrain(tree, n)` applies a sharding constraint to the
+    carry of n slots (identity on one device).
+
+    `tail_slots` (0 < tail_slots < num_slots; 0: off): once the queue is empty and at most
+    that many slots still run, those slots are gathered into a batch of `tail_slots` and the
+    loop goes on at that size. The queue's tail (the last, longest episodes, often
+    failures running to their task's limit) then no longer pays a full batch's step for a
+    few live envs. The program holds a second copy of the control step, at the tail's
+    size (a longer compile); an episode's steps are the same at either size wherever the
+    policy's and env's per-row arithmetic does not depend on the batch size. Batch-wide
+    policy-state leaves are kept as they are. Returns the per-episode results and the
+    number of control steps the loop ran."""
     n_queue, s = keys.shape[0], num_slots
+    if not 0 <= tail_slots < s:
+        raise ValueError(f"tail_slots must be 0 (off) or in 1..{s - 1} (below num_slots {s}), got {tail_slots}")
     r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
     # The slots' template (overwritten, never stepped) takes its shapes from the refill's own
     # jitted reset, whose trace JAX reuses for the refill's inputs of the same shapes: MJX's
@@ -272,9 +284,29 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         c = jax.lax.cond((blank < s) | (jnp.any(slot_ep == n_queue) & (next_ep < n_valid)), refill, lambda c: c, c)
         c = jax.lax.cond(c[1] >= s, step, lambda c: c, c)  # control steps once every slot is set
         t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals)), results
+        return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals), s), results
 
     c = (jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32),
-         *constrain((slot_ep, state, pstate, act_keys, totals)), results)
-    c = jax.lax.while_loop(cond, body, c)
+         *constrain((slot_ep, state, pstate, act_keys, totals), s), results)
+    if tail_slots == 0:
+        c = jax.lax.while_loop(cond, body, c)
+        return c[-1], c[0]
+
+    def head_cond(c):  # until the queue is empty and at most tail_slots slots run
+        blank, next_ep, slot_ep = c[1:4]
+        tail = (blank >= s) & (next_ep >= n_valid) & (jnp.sum(slot_ep < n_queue) <= tail_slots)
+        return cond(c) & ~tail
+
+    c = jax.lax.while_loop(head_cond, body, c)
+    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+    keep = jnp.argsort(slot_ep == n_queue, stable=True)[:tail_slots]  # running slots first, then finished ones
+    take = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
+    pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row)
+    tail = constrain((slot_ep[keep], take(state), pstate, take(act_keys), take(totals)), tail_slots)
+
+    def tail_body(c):
+        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = step(c)
+        return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals), tail_slots), results
+
+    c = jax.lax.while_loop(cond, tail_body, (t, blank, next_ep, *tail, results))
     return c[-1], c[0]

@@ -37,6 +37,10 @@ flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pending episode: every pending episode in "
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
+flags.DEFINE_integer("tail_envs", ev.EvalConfig.tail_envs,
+                     "With --refill: once no episode is pending and at most this many envs still run, they go on in "
+                     "a batch of this size, so the queue's last, longest episodes do not pay a --num_envs step "
+                     "(a second copy of the step in the program: a longer compile). 0: off.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
@@ -54,8 +58,10 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs, refill=FLAGS.refill)
-        sharding.check_batch(cfg.num_envs, sharding.env_mesh())
+        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs, refill=FLAGS.refill,
+                            tail_envs=FLAGS.tail_envs)
+        for n in (cfg.num_envs, cfg.tail_envs or cfg.num_envs):
+            sharding.check_batch(n, sharding.env_mesh())
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     settings = {"method": FLAGS.method, "tasks": [t.name for t in task_list], "episodes_per_task": cfg.episodes_per_task}
@@ -88,7 +94,8 @@ def main(argv):
     # Wall-clock of this invocation's batches (a resumed run times only what it ran). Its wall
     # time splits into compile (the rollout's, tracing included), run (the batches: device
     # work and fetching results) and host (the rest: imports, loading, setup, writing results).
-    timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "batches": 0,
+    timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "tail_envs": cfg.tail_envs,
+              "batches": 0,
               "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     table = policy.meta.get("cost_table")

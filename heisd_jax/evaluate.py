@@ -26,12 +26,20 @@ class EvalConfig:
     # An env whose episode ends takes the next pending one (all pending episodes in one call),
     # instead of batches of num_envs episodes that each wait for their slowest episode.
     refill: bool = True
+    # With refill: once the queue is empty and at most this many envs still run, they go on
+    # in a batch of this size (`rollout.run_queue`); 0: the tail runs at num_envs.
+    tail_envs: int = 0
 
     def __post_init__(self):
         if not 1 <= self.episodes_per_task <= tasks_lib.N_EVAL_INIT_STATES:
             raise ValueError(f"episodes_per_task must be in 1..{tasks_lib.N_EVAL_INIT_STATES}, got {self.episodes_per_task}")
         if self.num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {self.num_envs}")
+        if not 0 <= self.tail_envs < self.num_envs:
+            raise ValueError(f"tail_envs must be 0 (off) or in 1..{self.num_envs - 1} (below num_envs), "
+                             f"got {self.tail_envs}")
+        if self.tail_envs and not self.refill:
+            raise ValueError("tail_envs needs refill (a static batch has no queue to drain)")
 
 
 def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -> list[tuple[int, int]]:
@@ -51,13 +59,15 @@ class BatchRollout:
     Compiled ahead of time, so that calls time execution only."""
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int = 0,
-                 devices: Sequence[jax.Device] | None = None, queue: int | None = None):
+                 devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0):
         self.env, self.num_envs = env, num_envs
         self.queue = num_envs if queue is None else queue
         if self.queue < num_envs:
             raise ValueError(f"queue ({self.queue}) must hold at least num_envs ({num_envs}) episodes")
         self.mesh = sharding.env_mesh(devices)
         sharding.check_batch(num_envs, self.mesh)
+        if tail_envs:
+            sharding.check_batch(tail_envs, self.mesh)
         self.devices = self.mesh.size
         self.params = sharding.replicate(self.mesh, policy.params)
         max_steps = int(max(t.max_steps for t in env.tasks))
@@ -69,11 +79,11 @@ class BatchRollout:
                 return rollout.EpisodeResults.of(final, totals), steps
         else:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
-            constrain = sharding.slot_constraint(self.mesh, num_envs)
+            constrain = sharding.slot_constraint(self.mesh)
 
             def run(params, k, t, n_valid):
                 return rollout.run_queue(env, dataclasses.replace(policy, params=params), k, t, n_valid, num_envs,
-                                         bound, seed, constrain=constrain)
+                                         bound, seed, constrain=constrain, tail_slots=tail_envs)
         self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
 
@@ -124,7 +134,7 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     if refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
         todo.sort(key=lambda te: -int(env.tasks[te[0]].max_steps))
     per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
-    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call)
+    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=cfg.tail_envs if refill else 0)
     for start in range(0, len(todo), per_call):
         chunk = todo[start: start + per_call]
         pad = chunk + [chunk[-1]] * (per_call - len(chunk))  # static shape

@@ -66,13 +66,13 @@ def replicate(mesh: Mesh, tree: Any) -> Any:
     return jax.device_put(tree, NamedSharding(mesh, P()))
 
 
-def slot_constraint(mesh: Mesh, n: int):
-    """A function that keeps every leaf batched over the n env slots split over the mesh
-    inside a jitted loop (leaves of other shapes are left alone); identity on one device."""
+def slot_constraint(mesh: Mesh):
+    """A function `(tree, n)` that keeps every leaf batched over n env slots split over the
+    mesh inside a jitted loop (leaves of other shapes are left alone); identity on one device."""
     if mesh.size == 1:
-        return lambda tree: tree
+        return lambda tree, n: tree
     spec = NamedSharding(mesh, P(AXIS))
-    return lambda tree: jax.tree.map(
+    return lambda tree, n: jax.tree.map(
         lambda x: jax.lax.with_sharding_constraint(x, spec) if x.ndim and x.shape[0] == n else x, tree)
 
 

@@ -106,6 +106,10 @@ def test_eval_config_rejects_out_of_range_settings():
         ev.EvalConfig(episodes_per_task=51)
     with pytest.raises(ValueError, match="num_envs must be >= 1, got 0"):
         ev.EvalConfig(num_envs=0)
+    with pytest.raises(ValueError, match="tail_envs must be 0 \\(off\\) or in 1..7"):
+        ev.EvalConfig(num_envs=8, tail_envs=8)
+    with pytest.raises(ValueError, match="tail_envs needs refill"):
+        ev.EvalConfig(num_envs=8, tail_envs=2, refill=False)
 
 
 def test_an_interrupted_run_resumes_with_exactly_its_missing_episodes(compiled):

@@ -85,6 +85,45 @@ def test_every_episode_ends_as_when_run_alone(case, slots, refills):
         assert int(loop_steps) == int(final.step[v].max())
 
 
+def _sized_policy():
+    """The stand-in policy, also reporting the batch size it acted at as a per-row stat."""
+    base = _policy()
+
+    def act(params, states, pstate, keys):
+        a, pstate, stats = base.act(params, states, pstate, keys)
+        return a, pstate, {**stats, "batch": jnp.full(keys.shape[0], keys.shape[0], jnp.float32)}
+
+    return rollout.Policy(name="sized stand-in", init=base.init, act=act)
+
+
+@pytest.mark.parametrize("slots,tail", [(4, 1), (4, 2), (3, 2)])
+def test_a_tail_in_fewer_slots_ends_every_episode_as_when_run_alone(case, slots, tail):
+    """Once the queue is empty and at most `tail` slots run, the loop goes on at that batch
+    size: every episode ends as it does alone, in as many loop steps as without the tail,
+    and the last episodes' final steps were taken at the smaller batch size."""
+    keys, task_ids, final, totals, _ = case
+    run = lambda tail_slots: jax.jit(lambda k, t, n: rollout.run_queue(  # noqa: E731
+        _Env(), _sized_policy(), k, t, n, slots, 1000, tail_slots=tail_slots))(keys, task_ids, jnp.int32(N_EPISODES))
+    (out, loop_steps), (full, full_steps) = run(tail), run(0)
+    v = slice(0, N_EPISODES)
+    np.testing.assert_array_equal(out.steps[v], final.step[v])
+    np.testing.assert_array_equal(out.success[v], final.success[v])
+    for k in ("passes", "first"):
+        np.testing.assert_allclose(out.totals[k][v], totals[k][v], rtol=1e-6, atol=1e-6)
+    assert int(loop_steps) == int(full_steps)
+    np.testing.assert_array_equal(full.totals["batch"][v], slots * final.step[v])
+    in_tail = np.asarray(out.totals["batch"][v]) < slots * np.asarray(final.step[v])
+    assert 0 < in_tail.sum() <= tail  # only the episodes still running when the queue emptied
+    assert np.all(np.asarray(out.totals["batch"][v]) >= tail * np.asarray(final.step[v]))
+
+
+def test_a_tail_not_below_the_slots_is_refused(case):
+    keys, task_ids, *_ = case
+    for tail in (-1, 4, 5):
+        with pytest.raises(ValueError, match="tail_slots must be 0"):
+            rollout.run_queue(_Env(), _policy(), keys, task_ids, jnp.int32(N_EPISODES), 4, 100, tail_slots=tail)
+
+
 def test_fewer_slots_run_fewer_env_steps_than_batches_waiting_for_their_slowest(case):
     keys, task_ids, final, _, _ = case
     slots = 4

@@ -1,7 +1,8 @@
 """An episode's result does not depend on where it ran: the same episodes evaluated 3 and 4 at
 a time land in other slots, other batches and beside other (and padding) episodes, and end
 identically (success, step, failure); so do they when 2 or 4 env slots each take the next
-pending episode as theirs ends (`EvalConfig.refill`), starting at other control steps."""
+pending episode as theirs ends (`EvalConfig.refill`), starting at other control steps, and
+when the last ones go on in a batch of 2 (`EvalConfig.tail_envs`)."""
 
 import pytest
 
@@ -20,11 +21,11 @@ def runs():
     env = TabletopEnv(tasks.get_tasks("all", TASKS), EnvConfig(render=False))
     policy = expert.policy(env)
     out = {}
-    for num_envs, refill in ((3, False), (4, False), (2, True), (4, True)):
+    for num_envs, refill, tail in ((3, False, 0), (4, False, 0), (2, True, 0), (4, True, 0), (4, True, 2)):
         timing = []
-        results = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=EPISODES, num_envs=num_envs, refill=refill),
-                              on_batch=lambda r, t: timing.append(t))
-        out[num_envs, refill] = results, timing
+        cfg = ev.EvalConfig(episodes_per_task=EPISODES, num_envs=num_envs, refill=refill, tail_envs=tail)
+        results = ev.evaluate(env, policy, cfg, on_batch=lambda r, t: timing.append(t))
+        out[num_envs, refill] = out[num_envs, refill, tail] = results, timing
     return out
 
 
@@ -37,7 +38,7 @@ def test_batches_differ(runs):
 def test_episode_results_do_not_depend_on_slot_or_batch(runs):
     a = runs[3, False][0]
     ends = lambda eps: [(ep["success"], ep["steps"], ep["failure"]) for ep in eps]  # noqa: E731
-    for key in ((4, False), (2, True), (4, True)):
+    for key in ((4, False), (2, True), (4, True), (4, True, 2)):
         b = runs[key][0]
         assert sorted(a) == sorted(b) == sorted(TASKS)
         for task in TASKS:
