@@ -81,7 +81,8 @@ class ARSettings:
                                      vla.MATMUL_PRECISIONS)
     unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
                             "unrolled: one straight-line program per pass instead of a loop the host drives layer by "
-                            "layer on a GPU; compiles several times longer (and runs slower on a CPU).")
+                            "layer on a GPU; compiles several times longer, runs slower on a CPU, and on a GPU is "
+                            "faster inside a compiled loop but slower called from Python (BENCHMARKS.md).")
 
 
 @dataclasses.dataclass(frozen=True)

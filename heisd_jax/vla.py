@@ -282,7 +282,9 @@ class VLA(nn.Module):
     residuals; docs/target.md has the step times). The same function; inference passes keep
     the scan, which compiles faster, unless `cfg.unroll`: on a GPU XLA runs a scan's every
     iteration as its own launch from the host, which bounds a batch-1 decode (BENCHMARKS.md,
-    the host-loop profile), while an unrolled pass is one straight-line program."""
+    the host-loop profile), while an unrolled pass is one straight-line program: cheaper
+    inside a compiled loop, dearer per call from Python (its CUDA graph is updated on
+    every call)."""
     cfg: VLAConfig
     training: bool = False
 
