@@ -176,6 +176,17 @@ def cost_kwargs() -> dict:
     return {"cost_cache": flags.FLAGS.cost_cache or None, "calibrate_costs": flags.FLAGS.calibrate_costs}
 
 
+def define_tail_flag() -> None:
+    """--tail_envs (`EvalConfig.tail_envs`), for the entry points that run evaluations."""
+    from heisd_jax import evaluate  # noqa: PLC0415
+
+    flags.DEFINE_integer("tail_envs", evaluate.EvalConfig.tail_envs,
+                         "With refilled slots: once no episode is pending and at most this many envs still run, they "
+                         "go on in a batch of this size, so the queue's last, longest episodes do not pay a full "
+                         "batch's step (a second copy of the step in the program: a longer compile; faster on a warm "
+                         "compilation cache, docs/evaluator.md). 0: off.")
+
+
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts
     "checkpoint": ("policy checkpoint", "Target VLA checkpoint (default: the shipped one)."),
     "drafter": ("drafter checkpoint", "Drafter checkpoint, trained on the target (default: the shipped one)."),

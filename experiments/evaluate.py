@@ -37,10 +37,7 @@ flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
 flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pending episode: every pending episode in "
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
-flags.DEFINE_integer("tail_envs", ev.EvalConfig.tail_envs,
-                     "With --refill: once no episode is pending and at most this many envs still run, they go on in "
-                     "a batch of this size, so the queue's last, longest episodes do not pay a --num_envs step "
-                     "(a second copy of the step in the program: a longer compile). 0: off.")
+cli.define_tail_flag()
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings

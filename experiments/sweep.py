@@ -42,6 +42,7 @@ flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
 flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
+cli.define_tail_flag()
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
@@ -67,7 +68,8 @@ def run_cell(cell: dict, task_list, progress) -> dict:
     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                  datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(),
                                  **cli.cost_kwargs(), **settings)
-    timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
+    timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0,
+              "tail_envs": FLAGS.tail_envs}
 
     def on_batch(results, t):
         for k in ("batch_seconds", "control_steps", "env_steps"):
@@ -76,8 +78,8 @@ def run_cell(cell: dict, task_list, progress) -> dict:
         progress(results, t["episodes"])
 
     t0 = time.perf_counter()
-    results = ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=cell["episodes"], num_envs=cell["num_envs"]),
-                          on_batch=on_batch, seed=cell["seed"])
+    cfg = ev.EvalConfig(episodes_per_task=cell["episodes"], num_envs=cell["num_envs"], tail_envs=FLAGS.tail_envs)
+    results = ev.evaluate(env, policy, cfg, on_batch=on_batch, seed=cell["seed"])
     summary = ev.summarize(env.tasks, results)
     timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / max(timing["control_steps"], 1)
     timing["wall_seconds"] = time.perf_counter() - t0
@@ -113,9 +115,9 @@ def main(argv):
     try:
         chosen = tasks_lib.get_tasks(",".join(suites), task_filter)
         per_suite = {s: tuple(t for t in chosen if t.suite == s) for s in suites}
-        ev.EvalConfig(episodes_per_task=episodes, num_envs=min(num_envs))
+        ev.EvalConfig(episodes_per_task=episodes, num_envs=min(num_envs), tail_envs=FLAGS.tail_envs)
         mesh = sharding.env_mesh()
-        for b in num_envs:  # before any cell runs, not mid-sweep
+        for b in num_envs + [FLAGS.tail_envs or min(num_envs)]:  # before any cell runs, not mid-sweep
             sharding.check_batch(b, mesh)
     except ValueError as e:
         raise app.UsageError(str(e)) from e

@@ -12,6 +12,8 @@ CASES = [
     ("evaluate", ["--method=ar", "--top_k=4"], "--method=ar takes none of --top_k"),
     ("evaluate", ["--method=ar", "--checkpoint=/nonexistent/vla"], "no policy checkpoint there"),
     ("evaluate", ["--method=nope"], "ar|drafter|expert|heisd|retrieval"),
+    ("evaluate", ["--num_envs=8", "--tail_envs=8"], "tail_envs must be 0 (off) or in 1..7"),
+    ("sweep", ["--num_envs=8,16", "--tail_envs=12"], "tail_envs must be 0 (off) or in 1..7"),
     ("bench_decode", ["--batch_sizes=1,x"], "positive integers"),
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
     ("collect_demos", ["--suite_weights=spatial:2,longg:3", "--out=/nonexistent/demos"], "bad suite weight 'longg:3'"),
