@@ -300,9 +300,9 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     c = jax.lax.while_loop(head_cond, body, c)
     t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
     keep = jnp.argsort(slot_ep == n_queue, stable=True)[:tail_slots]  # running slots first, then finished ones
-    take = lambda tree: jax.tree.map(lambda x: x[keep], tree)  # noqa: E731
     pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row)
-    tail = constrain((slot_ep[keep], take(state), pstate, take(act_keys), take(totals)), tail_slots)
+    tail = constrain(jax.tree.map(lambda x: x[keep], (slot_ep, state)) + (pstate,) +
+                     jax.tree.map(lambda x: x[keep], (act_keys, totals)), tail_slots)
 
     def tail_body(c):
         t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = step(c)
