@@ -57,7 +57,7 @@ def main(argv):
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs, refill=FLAGS.refill,
                             tail_envs=FLAGS.tail_envs)
-        for n in (cfg.num_envs, cfg.tail_envs or cfg.num_envs):
+        for n in filter(None, (cfg.num_envs, cfg.tail_envs)):  # the tail's batch too, if any
             sharding.check_batch(n, sharding.env_mesh())
     except ValueError as e:
         raise app.UsageError(str(e)) from e
@@ -92,8 +92,7 @@ def main(argv):
     # time splits into compile (the rollout's, tracing included), run (the batches: device
     # work and fetching results) and host (the rest: imports, loading, setup, writing results).
     timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "tail_envs": cfg.tail_envs,
-              "batches": 0,
-              "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
+              "batches": 0, "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
 
     table = policy.meta.get("cost_table")
     if table is not None:

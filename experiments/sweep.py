@@ -117,7 +117,7 @@ def main(argv):
         per_suite = {s: tuple(t for t in chosen if t.suite == s) for s in suites}
         ev.EvalConfig(episodes_per_task=episodes, num_envs=min(num_envs), tail_envs=FLAGS.tail_envs)
         mesh = sharding.env_mesh()
-        for b in num_envs + [FLAGS.tail_envs or min(num_envs)]:  # before any cell runs, not mid-sweep
+        for b in filter(None, num_envs + [FLAGS.tail_envs]):  # before any cell runs, not mid-sweep
             sharding.check_batch(b, mesh)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
