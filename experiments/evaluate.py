@@ -38,6 +38,8 @@ flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pend
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
 cli.define_tail_flag()
+flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache, "
+                  "e.g. before a sweep), print where its compile time went, run nothing and write no results.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
@@ -85,6 +87,12 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
+    if FLAGS.compile_only:
+        split = ev.compile_rollout(env, policy, cfg, done)
+        print(f"{FLAGS.method}: {n_todo} episodes pending, {cfg.num_envs} envs: " +
+              (f"compiled in {_split_text(split)}" if split else "nothing to compile"))
+        print(f"time: {time.perf_counter() - T_START:.0f}s wall")
+        return
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")
     t_start = time.perf_counter()
     progress = {"episodes": n_total - n_todo}
@@ -118,7 +126,7 @@ def main(argv):
     def on_batch(results, t):
         progress["episodes"] += t["episodes"]
         timing["batches"] += 1
-        timing["compile_seconds"] = t["compile_seconds"]
+        timing["compile_seconds"], timing["compile_split"] = t["compile_seconds"], t["compile_split"]
         timing["devices"] = t.get("devices", 1)
         for k in ("batch_seconds", "control_steps", "env_steps"):
             timing[k] += t[k]
@@ -143,7 +151,14 @@ def main(argv):
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
     print(f"time: {timing['wall_seconds']:.0f}s wall = compile {timing['compile_seconds']:.0f}s + run "
           f"{timing['batch_seconds']:.0f}s + host {timing['host_seconds']:.0f}s")
+    if timing.get("compile_split"):
+        print(f"compile: {_split_text({**timing['compile_split'], 'total': timing['compile_seconds']})}")
     print(f"results: {os.path.abspath(FLAGS.out)}")
+
+
+def _split_text(split: dict[str, float]) -> str:
+    return (f"{split['total']:.1f}s = trace {split['trace']:.1f}s + lower {split['lower']:.1f}s + "
+            f"XLA {split['xla']:.1f}s (or its load from the compilation cache)")
 
 
 if __name__ == "__main__":

@@ -86,6 +86,7 @@ class BatchRollout:
                                          bound, seed, constrain=constrain, tail_slots=tail_envs)
         self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
+        self.compile_split: dict[str, float] = {}  # seconds: trace (Python), lower (to MLIR), xla (or cache load)
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None) -> tuple:
         """Device inputs for episodes (task_ids[i], episodes[i]), both [queue], of which the
@@ -101,10 +102,16 @@ class BatchRollout:
 
     def compile(self, inputs: tuple) -> None:
         if self._compiled is None:
-            t0 = time.perf_counter()
-            self._compiled = self._run.lower(*inputs).compile()
+            t = [time.perf_counter()]
+            traced = self._run.trace(*inputs)
+            t.append(time.perf_counter())
+            lowered = traced.lower()
+            t.append(time.perf_counter())
+            self._compiled = lowered.compile()
             sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
-            self.compile_seconds = time.perf_counter() - t0
+            t.append(time.perf_counter())
+            self.compile_split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t, t[1:])}
+            self.compile_seconds = t[-1] - t[0]
 
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
@@ -130,16 +137,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     todo = pending_episodes(env, cfg, results)
     if not todo:
         return results
-    refill = cfg.refill and jax.process_count() == 1  # several hosts: batches (refilling is tested on one host)
-    if refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
-        todo.sort(key=lambda te: -int(env.tasks[te[0]].max_steps))
-    per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
-    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=cfg.tail_envs if refill else 0)
-    for start in range(0, len(todo), per_call):
-        chunk = todo[start: start + per_call]
-        pad = chunk + [chunk[-1]] * (per_call - len(chunk))  # static shape
-        tids, eps = np.array(pad).T
-        inputs = run.inputs(tids, eps, n_valid=len(chunk))
+    run, calls = _plan(env, policy, cfg, todo, seed, devices)
+    for chunk, inputs in calls:
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
         out, loop_steps = run(inputs)
@@ -158,10 +157,42 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
         if on_batch is not None:
-            on_batch(results, {"batch_seconds": dt, "compile_seconds": run.compile_seconds, "episodes": len(chunk),
+            on_batch(results, {"batch_seconds": dt, "compile_seconds": run.compile_seconds,
+                               "compile_split": run.compile_split, "episodes": len(chunk),
                                "control_steps": int(loop_steps), "env_steps": int(np.sum(out.steps[:len(chunk)])),
                                "devices": run.devices})
     return results
+
+
+def compile_rollout(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
+                    seed: int = 0, devices: Sequence[jax.Device] | None = None) -> dict[str, float]:
+    """Compiles the program `evaluate` would run for the pending episodes (filling JAX's
+    persistent compilation cache, where on) and runs nothing; returns its compile seconds:
+    trace, lower, xla and total. {} when no episode is pending."""
+    todo = pending_episodes(env, cfg, done or {})
+    if not todo:
+        return {}
+    run, calls = _plan(env, policy, cfg, todo, seed, devices)
+    run.compile(next(calls)[1])
+    return {**run.compile_split, "total": run.compile_seconds}
+
+
+def _plan(env, policy, cfg, todo, seed, devices):
+    """The rollout for `todo` (pending (task, episode) pairs) and a generator of its calls:
+    (episodes, device inputs), each call's episodes padded to the program's static queue."""
+    refill = cfg.refill and jax.process_count() == 1  # several hosts: batches (refilling is tested on one host)
+    if refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
+        todo = sorted(todo, key=lambda te: -int(env.tasks[te[0]].max_steps))
+    per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
+    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=cfg.tail_envs if refill else 0)
+
+    def calls():
+        for start in range(0, len(todo), per_call):
+            chunk = todo[start: start + per_call]
+            pad = chunk + [chunk[-1]] * (per_call - len(chunk))  # static shape
+            tids, eps = np.array(pad).T
+            yield chunk, run.inputs(tids, eps, n_valid=len(chunk))
+    return run, calls()
 
 
 def _decode_means(recs: list[dict]) -> dict:
