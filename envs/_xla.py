@@ -5,6 +5,16 @@
 * `--xla_cpu_multi_thread_eigen=false`: keeps XLA:CPU's Eigen kernels single-threaded.
   It does not prevent the known CPU hang of large rollouts, a deadlock inside jaxlib's
   batched LAPACK Cholesky on the intra-op pool (docs/evaluator.md).
+On a GPU, one more: `--xla_gpu_load_autotune_results_from=checkpoints/xla_autotune.pbtxt`,
+XLA's autotuning results for the shipped checkpoints' evaluation programs (which kernel each
+fusion and matrix product uses; `experiments/ship_autotune.py` makes them). A compile finds its
+kernels there instead of timing candidates, which is about a third of the AR rollout's XLA
+compile, and every machine then builds the same program, so the same episodes. They are loaded
+only where the installed jax, jaxlib and CUDA plugin are the versions that made them (recorded
+in `xla_autotune.json` beside them; another version may not read the file) and JAX may use a
+GPU; entries are keyed by GPU model and each fusion's HLO, so another GPU or program finds
+nothing there and autotunes as usual. An explicit setting (`--xla_gpu_load_autotune_results_from=`
+turns it off) is respected.
 Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag they do not
 know, although its name still appears in their binaries. So whether each flag is accepted
 is probed once, in a child process that starts JAX's backends with it, and the answer is
@@ -17,6 +27,7 @@ from __future__ import annotations
 import importlib.metadata
 import json
 import os
+from pathlib import Path
 import subprocess
 import sys
 
@@ -24,15 +35,40 @@ from heisd_jax.cache_dirs import cache_root
 
 FLAGS = {"xla_cpu_use_fusion_emitters": "false", "xla_cpu_multi_thread_eigen": "false"}
 _CACHE = cache_root() / "xla_flag.json"
+AUTOTUNE_FLAG = "xla_gpu_load_autotune_results_from"
+SHIPPED_AUTOTUNE = Path(__file__).resolve().parents[1] / "checkpoints" / "xla_autotune.pbtxt"
+
+
+def jax_versions() -> str:
+    """The installed jax, jaxlib and GPU plugins, e.g. 'jax==0.11.2;jaxlib==0.11.2'."""
+    versions = []
+    for dist in importlib.metadata.distributions():
+        name = (dist.metadata["Name"] or "").lower().replace("_", "-")
+        if name in ("jax", "jaxlib") or name.startswith("jax-cuda") or name.startswith("jax-rocm"):
+            versions.append(f"{name}=={dist.version}")
+    return ";".join(sorted(set(versions)))
 
 
 def _fingerprint() -> str:
-    versions = []
-    for dist in importlib.metadata.distributions():
-        name = (dist.metadata["Name"] or "").lower()
-        if name in ("jax", "jaxlib") or name.startswith("jax-cuda") or name.startswith("jax_cuda") or name.startswith("jax-rocm"):
-            versions.append(f"{name}=={dist.version}")
-    return ";".join(sorted(versions)) + f"|JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')}"
+    return jax_versions() + f"|JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')}"
+
+
+def shipped_autotune(path: Path | None = None) -> Path | None:
+    """`path` (default SHIPPED_AUTOTUNE) if this process may load it: its record (`path` with
+    .json) names the installed versions, a CUDA plugin is installed and JAX_PLATFORMS (if set)
+    allows CUDA; else None."""
+    path = path or SHIPPED_AUTOTUNE
+    try:
+        made_with = json.loads(path.with_suffix(".json").read_text())["versions"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    versions = jax_versions()
+    platforms = os.environ.get("JAX_PLATFORMS", "").lower()
+    gpu_allowed = not platforms or any(p in platforms for p in ("cuda", "gpu"))
+    if made_with != versions or "jax-cuda" not in versions or not gpu_allowed or not path.is_file() \
+            or any(c.isspace() for c in str(path)):  # XLA_FLAGS splits on whitespace
+        return None
+    return path
 
 
 def _probe(flags: str) -> bool:
@@ -67,6 +103,10 @@ def configure() -> None:
         current = os.environ.get("XLA_FLAGS", "")
         if name not in current and flag_supported(name, value):
             os.environ["XLA_FLAGS"] = (current + f" --{name}={value}").strip()
+    current = os.environ.get("XLA_FLAGS", "")
+    path = shipped_autotune()
+    if path is not None and AUTOTUNE_FLAG not in current:
+        os.environ["XLA_FLAGS"] = (current + f" --{AUTOTUNE_FLAG}={path}").strip()
 
 
 LAPACK_CHOLESKY_MAX_FLOPS = 1e5  # per call; jaxlib splits a batch over the pool above ~2e5

@@ -1,0 +1,78 @@
+"""The XLA flags `import envs` sets before JAX starts: the shipped autotuning results are
+loaded only where the installed versions made them and JAX may use a GPU, and a user's own
+setting wins."""
+
+import json
+
+import pytest
+
+from envs import _xla
+from experiments import ship_autotune
+
+GPU_VERSIONS = "jax-cuda13-pjrt==0.11.2;jax-cuda13-plugin==0.11.2;jax==0.11.2;jaxlib==0.11.2"
+
+
+@pytest.fixture
+def shipped(tmp_path, monkeypatch):
+    path = tmp_path / "xla_autotune.pbtxt"
+    path.write_text("entries {\n}\n")
+    path.with_suffix(".json").write_text(json.dumps({"versions": GPU_VERSIONS}))
+    monkeypatch.setattr(_xla, "jax_versions", lambda: GPU_VERSIONS)
+    monkeypatch.delenv("JAX_PLATFORMS", raising=False)
+    return path
+
+
+def test_loaded_only_with_the_versions_that_made_it(shipped, monkeypatch):
+    assert _xla.shipped_autotune(shipped) == shipped
+    monkeypatch.setattr(_xla, "jax_versions", lambda: GPU_VERSIONS.replace("0.11.2", "0.11.3"))
+    assert _xla.shipped_autotune(shipped) is None
+
+
+def test_not_loaded_without_a_gpu(shipped, monkeypatch):
+    monkeypatch.setenv("JAX_PLATFORMS", "cpu")
+    assert _xla.shipped_autotune(shipped) is None
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda,cpu")
+    assert _xla.shipped_autotune(shipped) == shipped
+    monkeypatch.delenv("JAX_PLATFORMS")
+    cpu_only = "jax==0.11.2;jaxlib==0.11.2"
+    shipped.with_suffix(".json").write_text(json.dumps({"versions": cpu_only}))
+    monkeypatch.setattr(_xla, "jax_versions", lambda: cpu_only)
+    assert _xla.shipped_autotune(shipped) is None
+
+
+def test_not_loaded_without_its_record(shipped):
+    shipped.with_suffix(".json").write_text("{not json")
+    assert _xla.shipped_autotune(shipped) is None
+    shipped.with_suffix(".json").unlink()
+    assert _xla.shipped_autotune(shipped) is None
+
+
+@pytest.mark.parametrize("user", ["", "--xla_gpu_load_autotune_results_from=", "--xla_gpu_load_autotune_results_from=/mine.pbtxt"])
+def test_configure_adds_the_flag_unless_the_user_set_it(shipped, monkeypatch, user):
+    monkeypatch.setattr(_xla, "SHIPPED_AUTOTUNE", shipped)
+    monkeypatch.setattr(_xla, "flag_supported", lambda name, value: True)
+    monkeypatch.setenv("XLA_FLAGS", user)
+    _xla.configure()
+    flags = _xla.os.environ["XLA_FLAGS"].split()
+    assert "--xla_cpu_use_fusion_emitters=false" in flags
+    loads = [f for f in flags if f.startswith(f"--{_xla.AUTOTUNE_FLAG}=")]
+    assert loads == ([user] if user else [f"--{_xla.AUTOTUNE_FLAG}={shipped}"])
+
+
+def test_ship_autotune_replaces_the_callers_load_and_dump(monkeypatch):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2 --xla_gpu_load_autotune_results_from=/a.pbtxt "
+                                    "--xla_gpu_dump_autotune_results_to=/b.pbtxt")
+    assert ship_autotune._xla_flags("/prev.pbtxt", "/next.pbtxt").split() == [
+        "--xla_gpu_autotune_level=2", "--xla_gpu_load_autotune_results_from=/prev.pbtxt",
+        "--xla_gpu_dump_autotune_results_to=/next.pbtxt"]
+
+
+def test_the_shipped_record_describes_the_shipped_file():
+    record_path = _xla.SHIPPED_AUTOTUNE.with_suffix(".json")
+    if not record_path.exists():
+        pytest.skip("no autotuning results shipped")
+    record = json.loads(record_path.read_text())
+    text = _xla.SHIPPED_AUTOTUNE.read_text()
+    assert record["entries"] == sum(line.startswith("entries {") for line in text.splitlines()) > 0
+    assert "jaxlib==" in record["versions"] and "jax-cuda" in record["versions"]
+    assert record["device"] and record["programs"]
