@@ -41,9 +41,14 @@ def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, t
     out = tmp_path / "ar.json"
     argv = ["--method=ar", f"--checkpoint={tiny_ckpt}", f"--tasks={TASKS}", "--suites=all", "--episodes=1",
             "--num_envs=2", f"--out={out}"]
+    stdout = _run_main([*argv, "--compile_only"])  # compiles what the run would, runs and writes nothing
+    assert "2 episodes pending, 2 envs: compiled in" in stdout and not out.exists()
     _run_main(argv)
     res = json.loads(out.read_text())
     assert res["settings"]["method"] == "ar" and res["settings"]["tasks"] == TASKS.split(",")
+    split = res["timing"]["compile_split"]
+    assert set(split) == {"trace", "lower", "xla"} and sum(split.values()) == pytest.approx(
+        res["timing"]["compile_seconds"], rel=1e-6)
     for task in TASKS.split(","):
         (ep,) = res["episodes"][task]
         assert isinstance(ep["success"], bool) and ep["steps"] > 0
@@ -122,6 +127,8 @@ def test_an_interrupted_run_resumes_with_exactly_its_missing_episodes(compiled):
     done = {names[0]: [rec, None, rec], names[1]: [rec], **{n: [rec] * 3 for n in names[3:]}}
     assert ev.pending_episodes(env, cfg, done) == [(0, 1), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
     assert len(ev.pending_episodes(env, cfg, {})) == 3 * len(names)
+    everything = {n: [rec] * 3 for n in names}  # nothing pending: nothing to compile
+    assert ev.compile_rollout(env, None, cfg, everything) == {}
 
 
 def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path):
