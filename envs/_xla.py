@@ -71,6 +71,14 @@ def shipped_autotune(path: Path | None = None) -> Path | None:
     return path
 
 
+def with_autotune_files(load: str, dump: str, flags: str = "") -> str:
+    """XLA_FLAGS `flags` (e.g. the caller's) with any autotuning-results load or dump setting
+    replaced by these (`experiments/ship_autotune.py`)."""
+    own = (AUTOTUNE_FLAG, "xla_gpu_dump_autotune_results_to")
+    kept = [f for f in flags.split() if not any(n in f for n in own)]
+    return " ".join(kept + [f"--{AUTOTUNE_FLAG}={load}", f"--xla_gpu_dump_autotune_results_to={dump}"])
+
+
 def _probe(flags: str) -> bool:
     env = dict(os.environ, XLA_FLAGS=flags)
     try:

@@ -14,7 +14,6 @@ installed versions are the recorded ones (envs/_xla.py). Run it on the GPU the r
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 import shutil
@@ -36,15 +35,6 @@ flags.DEFINE_integer("num_envs", 1000, "As experiments.evaluate's --num_envs (th
 flags.DEFINE_bool("extend", False, "Start from the shipped entries (another GPU's, other batch sizes') instead of none.")
 flags.DEFINE_string("out", str(_xla.SHIPPED_AUTOTUNE), "The results file (XLA text proto); its record is OUT with .json.")
 
-_OWN_FLAGS = (_xla.AUTOTUNE_FLAG, "xla_gpu_dump_autotune_results_to")
-
-
-def _xla_flags(load: str, dump: str) -> str:
-    """The caller's XLA_FLAGS without any autotune load/dump setting, plus these."""
-    kept = [f for f in os.environ.get("XLA_FLAGS", "").split() if not any(n in f for n in _OWN_FLAGS)]
-    return " ".join(kept + [f"--{_xla.AUTOTUNE_FLAG}={load}", f"--xla_gpu_dump_autotune_results_to={dump}"])
-
-
 def main(argv):
     del argv
     unknown = [m for m in FLAGS.methods if m not in methods.METHODS]
@@ -63,7 +53,7 @@ def main(argv):
             dump = str(Path(tmp) / f"results_{i}.pbtxt")
             cmd = [sys.executable, "-m", "experiments.evaluate", f"--method={m}", *common,
                    f"--compilation_cache={Path(tmp) / f'cache_{i}'}"]
-            env = dict(os.environ, XLA_FLAGS=_xla_flags(load, dump))
+            env = dict(os.environ, XLA_FLAGS=_xla.with_autotune_files(load, dump, os.environ.get("XLA_FLAGS", "")))
             print(f"{m}: compiling ({' '.join(cmd[1:])})", flush=True)
             r = subprocess.run(cmd, env=env)
             if r.returncode != 0 or not Path(dump).is_file():

@@ -7,7 +7,6 @@ import json
 import pytest
 
 from envs import _xla
-from experiments import ship_autotune
 
 GPU_VERSIONS = "jax-cuda13-pjrt==0.11.2;jax-cuda13-plugin==0.11.2;jax==0.11.2;jaxlib==0.11.2"
 
@@ -59,10 +58,10 @@ def test_configure_adds_the_flag_unless_the_user_set_it(shipped, monkeypatch, us
     assert loads == ([user] if user else [f"--{_xla.AUTOTUNE_FLAG}={shipped}"])
 
 
-def test_ship_autotune_replaces_the_callers_load_and_dump(monkeypatch):
-    monkeypatch.setenv("XLA_FLAGS", "--xla_gpu_autotune_level=2 --xla_gpu_load_autotune_results_from=/a.pbtxt "
-                                    "--xla_gpu_dump_autotune_results_to=/b.pbtxt")
-    assert ship_autotune._xla_flags("/prev.pbtxt", "/next.pbtxt").split() == [
+def test_ship_autotune_replaces_the_callers_load_and_dump():
+    caller = ("--xla_gpu_autotune_level=2 --xla_gpu_load_autotune_results_from=/a.pbtxt "
+              "--xla_gpu_dump_autotune_results_to=/b.pbtxt")
+    assert _xla.with_autotune_files("/prev.pbtxt", "/next.pbtxt", caller).split() == [
         "--xla_gpu_autotune_level=2", "--xla_gpu_load_autotune_results_from=/prev.pbtxt",
         "--xla_gpu_dump_autotune_results_to=/next.pbtxt"]
 
