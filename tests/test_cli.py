@@ -1,6 +1,8 @@
 """A user's mistake on the command line: one line naming the problem, exit status 2, no
 traceback and no usage text, before anything loads or compiles."""
 
+import os
+from pathlib import Path
 import subprocess
 import sys
 
@@ -18,6 +20,8 @@ CASES = [
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
     ("collect_demos", ["--suite_weights=spatial:2,longg:3", "--out=/nonexistent/demos"], "bad suite weight 'longg:3'"),
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
+    ("ship_autotune", ["--methods=ar,nope"], "unknown ['nope']; choose from ['ar', 'drafter', 'expert'"),
+    ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
 ]
 
 
@@ -93,3 +97,12 @@ def test_collection_batches_hold_one_time_limit_each():
         assert {limits[t] for t, _ in chunk} == {n_steps} and len(chunk) <= size <= 4
     # 10 episodes of limit 220 in 3 batches of 4 (not 4 + 4 + 2 padded to 4): sizes equal per limit.
     assert [(n, s, len(c)) for n, s, c in batches] == [(220, 4, 4), (220, 4, 4), (220, 4, 2), (420, 3, 3), (420, 3, 2)]
+
+
+def test_ship_autotune_refuses_a_machine_without_a_gpu_before_compiling(tmp_path):
+    out = tmp_path / "xla_autotune.pbtxt"
+    r = subprocess.run([sys.executable, "-m", "experiments.ship_autotune", f"--out={out}"], capture_output=True,
+                       text=True, cwd=Path(__file__).resolve().parents[1], timeout=300,
+                       env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert r.returncode == 2 and "only on a GPU" in r.stderr, r.stderr[-2000:]
+    assert not out.exists()
