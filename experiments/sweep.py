@@ -12,7 +12,9 @@ the method's full settings, the git commit, the device and library versions) as 
 finishes: rerunning the same command skips finished cells, and a partial last line left by
 a crash is cut off and its cell redone. A file from a sweep of other fixed settings
 (episodes, tasks, checkpoints) is refused, never overwritten. Seeds change only the keys
-handed to the policy: the initial states are the fixed evaluation ones.
+handed to the policy: the initial states are the fixed evaluation ones. One env holds every
+task of the sweep (task ids are data), so the suites of one method, settings, batch size and
+seed run one compiled program, traced and compiled once per sweep (`Programs`).
 """
 
 from __future__ import annotations
@@ -62,12 +64,31 @@ def _provenance() -> dict:
             "versions": {"jax": jax.__version__, "flax": flax.__version__, "mujoco": mujoco.__version__}}
 
 
-def run_cell(cell: dict, task_list, progress) -> dict:
-    name, settings = cell["method"], dict(cell["settings"])
-    env = TabletopEnv(task_list, methods.env_config(name, FLAGS.checkpoint))
-    policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                 datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(),
-                                 **cli.cost_kwargs(), **settings)
+class Programs:
+    """One env over every task of the sweep and, per method, settings and batch size, one
+    policy and its compiled rollouts: task ids are data, so the suites (and their tasks) of a
+    method share one program, compiled once and not traced again."""
+
+    def __init__(self, task_list):
+        self.task_list, self.envs, self.built = tuple(task_list), {}, {}
+
+    def get(self, cell: dict):
+        name, settings = cell["method"], dict(cell["settings"])
+        key = (name, json.dumps(settings, sort_keys=True), cell["num_envs"])
+        if key not in self.built:
+            env_cfg = methods.env_config(name, FLAGS.checkpoint)
+            if env_cfg not in self.envs:
+                self.envs[env_cfg] = TabletopEnv(self.task_list, env_cfg)
+            env = self.envs[env_cfg]
+            policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                         datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(),
+                                         **cli.cost_kwargs(), **settings)
+            self.built[key] = (env, policy, {})
+        return self.built[key]
+
+
+def run_cell(cell: dict, task_list, programs: Programs, progress) -> dict:
+    env, policy, rollouts = programs.get(cell)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0,
               "tail_envs": FLAGS.tail_envs}
 
@@ -79,7 +100,8 @@ def run_cell(cell: dict, task_list, progress) -> dict:
 
     t0 = time.perf_counter()
     cfg = ev.EvalConfig(episodes_per_task=cell["episodes"], num_envs=cell["num_envs"], tail_envs=FLAGS.tail_envs)
-    results = ev.evaluate(env, policy, cfg, on_batch=on_batch, seed=cell["seed"])
+    results = ev.evaluate(env, policy, cfg, on_batch=on_batch, seed=cell["seed"], tasks={t.name for t in task_list},
+                          rollouts=rollouts)
     summary = ev.summarize(env.tasks, results)
     timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / max(timing["control_steps"], 1)
     timing["wall_seconds"] = time.perf_counter() - t0
@@ -143,6 +165,7 @@ def main(argv):
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
                   TextColumn("success so far {task.fields[sr]}"), TimeElapsedColumn(), TimeRemainingColumn()) as bar:
         task = bar.add_task("sweep", total=total, sr="-")
+        programs = Programs(t for ts in per_suite.values() for t in ts)
         counts = {"succ": 0, "n": 0}
         for cell in todo:
             bar.update(task, description=f"{cell['method']} {cell['suite']} B={cell['num_envs']} seed={cell['seed']}")
@@ -150,7 +173,7 @@ def main(argv):
             def progress(results, n, cell=cell):
                 bar.advance(task, n)
 
-            rec = run_cell(cell, per_suite[cell["suite"]], progress)
+            rec = run_cell(cell, per_suite[cell["suite"]], programs, progress)
             counts["succ"] += rec["suite"].get("successes", 0)
             counts["n"] += rec["suite"].get("episodes", 0)
             bar.update(task, sr=f"{counts['succ'] / max(counts['n'], 1):.3f}")

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from typing import Callable, Sequence
+from typing import Callable, Collection, Sequence
 
 import jax
 import numpy as np
@@ -42,10 +42,14 @@ class EvalConfig:
             raise ValueError("tail_envs needs refill (a static batch has no queue to drain)")
 
 
-def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list]) -> list[tuple[int, int]]:
-    """(task index, episode) pairs not yet in `done` (task name -> per-episode results)."""
+def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
+                     tasks: Collection[str] | None = None) -> list[tuple[int, int]]:
+    """(task index, episode) pairs not yet in `done` (task name -> per-episode results), of
+    the env's tasks named in `tasks` (default: all)."""
     out = []
     for t, task in enumerate(env.tasks):
+        if tasks is not None and task.name not in tasks:
+            continue
         have = done.get(task.name, [None] * cfg.episodes_per_task)
         out += [(t, e) for e in range(cfg.episodes_per_task) if e >= len(have) or have[e] is None]
     return out
@@ -100,6 +104,10 @@ class BatchRollout:
         n = np.int32(self.queue if n_valid is None else n_valid)
         return (self.params, *queue, sharding.replicate(self.mesh, n))
 
+    @property
+    def compiled(self) -> bool:
+        return self._compiled is not None
+
     def compile(self, inputs: tuple) -> None:
         if self._compiled is None:
             t = [time.perf_counter()]
@@ -121,7 +129,8 @@ class BatchRollout:
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
              on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
-             devices: Sequence[jax.Device] | None = None) -> dict[str, list]:
+             devices: Sequence[jax.Device] | None = None, tasks: Collection[str] | None = None,
+             rollouts: dict | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
     decode totals summed over the episode's actions (e.g. target_passes). The env slots are
@@ -132,12 +141,17 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     `on_batch(results, timing)` is called after every call with everything so far; timing
     holds the call's wall-clock (compilation excluded, reported once as compile_seconds),
     its control steps (iterations of the batched loop: one batched action each), env steps
-    and the number of devices."""
+    and the number of devices.
+    `tasks` (names) runs only those of the env's tasks: task ids are data, so an env over
+    several suites evaluates each with one program. `rollouts`, a dict the caller keeps for
+    this env and policy, holds the compiled rollouts for reuse by later calls of the same
+    shapes (no tracing, no compile: `compile_seconds` is then 0)."""
     results = {k: list(v) for k, v in (done or {}).items()}
-    todo = pending_episodes(env, cfg, results)
+    todo = pending_episodes(env, cfg, results, tasks)
     if not todo:
         return results
-    run, calls = _plan(env, policy, cfg, todo, seed, devices)
+    run, calls = _plan(env, policy, cfg, todo, seed, devices, rollouts)
+    reused = run.compiled  # compiled by an earlier call: nothing to report as this call's compile
     for chunk, inputs in calls:
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
@@ -157,8 +171,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
         if on_batch is not None:
-            on_batch(results, {"batch_seconds": dt, "compile_seconds": run.compile_seconds,
-                               "compile_split": run.compile_split, "episodes": len(chunk),
+            on_batch(results, {"batch_seconds": dt, "compile_seconds": 0.0 if reused else run.compile_seconds,
+                               "compile_split": {} if reused else run.compile_split, "episodes": len(chunk),
                                "control_steps": int(loop_steps), "env_steps": int(np.sum(out.steps[:len(chunk)])),
                                "devices": run.devices})
     return results
@@ -177,14 +191,20 @@ def compile_rollout(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, d
     return {**run.compile_split, "total": run.compile_seconds}
 
 
-def _plan(env, policy, cfg, todo, seed, devices):
+def _plan(env, policy, cfg, todo, seed, devices, rollouts=None):
     """The rollout for `todo` (pending (task, episode) pairs) and a generator of its calls:
     (episodes, device inputs), each call's episodes padded to the program's static queue."""
     refill = cfg.refill and jax.process_count() == 1  # several hosts: batches (refilling is tested on one host)
     if refill:  # longest episodes first, so the queue does not end on a slot that just began a long one
         todo = sorted(todo, key=lambda te: -int(env.tasks[te[0]].max_steps))
     per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
-    run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=cfg.tail_envs if refill else 0)
+    tail = cfg.tail_envs if refill else 0
+    key = (cfg.num_envs, per_call, tail, seed, None if devices is None else tuple(d.id for d in devices))
+    run = (rollouts or {}).get(key)
+    if run is None:
+        run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=tail)
+        if rollouts is not None:
+            rollouts[key] = run
 
     def calls():
         for start in range(0, len(todo), per_call):

@@ -165,3 +165,18 @@ def test_summary_counts_per_action_and_per_episode():
     assert s["target_passes_per_action"] == 90.0 / 40 and s["target_passes_per_episode"] == 45.0
     assert s["tokens_per_target_pass"] == 280.0 / 90
     assert summary["tasks"][task.name]["target_passes_per_episode"] == 45.0
+
+
+def test_suites_of_one_env_share_one_compiled_rollout():
+    """Task ids are data: an env over two suites' tasks evaluates each suite (`tasks`) with one
+    program, compiled for the first and reused, untraced, by the second."""
+    env = TabletopEnv(tasks_lib.get_tasks("spatial,object", ["left_block_plate", "pick_red_block"]),
+                      EnvConfig(render=False))
+    policy = methods.make_policy("expert", env)
+    cfg = ev.EvalConfig(episodes_per_task=2, num_envs=2)
+    rollouts, timings = {}, []
+    parts = [ev.evaluate(env, policy, cfg, tasks={name}, rollouts=rollouts, on_batch=lambda r, t: timings.append(t))
+             for name in ("left_block_plate", "pick_red_block")]
+    assert [list(p) for p in parts] == [["left_block_plate"], ["pick_red_block"]]
+    assert len(rollouts) == 1 and timings[0]["compile_seconds"] > 0 and timings[1]["compile_seconds"] == 0.0
+    assert all(len(p[name]) == 2 and all(r is not None for r in p[name]) for p in parts for name in p)
