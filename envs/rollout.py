@@ -44,13 +44,22 @@ def per_env(name: str, init: Callable[[EnvState], Any], act: Callable[[EnvState,
     return Policy(name=name, init=lambda params, states: jax.vmap(init)(states), act=act_b)
 
 
-def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int = 0,
+def seeded_keys(act_keys: jax.Array, seed: int | jax.Array) -> jax.Array:
+    """The policy's episode keys [B, 2] under `seed`: folded with it, except that seed 0 keeps
+    the historical keys. `seed` is a Python int (one program per seed) or a traced int32
+    scalar (one program for every seed; the same keys)."""
+    if isinstance(seed, int):
+        return jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys) if seed else act_keys
+    folded = jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys)
+    return jnp.where(seed == 0, act_keys, folded)
+
+
+def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int | jax.Array = 0,
            reset: Callable | None = None):
     """Reset envs and policy state for episodes (keys [B, 2], task_ids [B]); `reset` is the
     batched env reset (default `vmap(env.reset)`)."""
     reset_keys, act_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
-    if seed:  # a Python int: seed 0 keeps the historical keys
-        act_keys = jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys)
+    act_keys = seeded_keys(act_keys, seed)
     state = (reset or jax.vmap(env.reset))(reset_keys, task_ids)
     return state, policy.init(policy.params, state), act_keys
 

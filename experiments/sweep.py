@@ -13,8 +13,9 @@ finishes: rerunning the same command skips finished cells, and a partial last li
 a crash is cut off and its cell redone. A file from a sweep of other fixed settings
 (episodes, tasks, checkpoints) is refused, never overwritten. Seeds change only the keys
 handed to the policy: the initial states are the fixed evaluation ones. One env holds every
-task of the sweep (task ids are data), so the suites of one method, settings, batch size and
-seed run one compiled program, traced and compiled once per sweep (`Programs`).
+task of the sweep and task ids and seeds are data, so the suites and seeds of one method,
+settings and batch size run one compiled program, traced and compiled once per sweep
+(`Programs`).
 """
 
 from __future__ import annotations
@@ -66,8 +67,8 @@ def _provenance() -> dict:
 
 class Programs:
     """One env over every task of the sweep and, per method, settings and batch size, one
-    policy and its compiled rollouts: task ids are data, so the suites (and their tasks) of a
-    method share one program, compiled once and not traced again."""
+    policy and its compiled rollouts: task ids and seeds are data, so the suites and seeds of
+    a method share one program, compiled once and not traced again."""
 
     def __init__(self, task_list):
         self.task_list, self.envs, self.built = tuple(task_list), {}, {}

@@ -60,9 +60,10 @@ class BatchRollout:
     (default: all; the env slots are split, the policy's parameters replicated; one device: a
     plain jit). queue == num_envs: one static batch, run until every env is done; queue >
     num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`).
-    Compiled ahead of time, so that calls time execution only."""
+    Compiled ahead of time, so that calls time execution only. `seed=None`: the seed is an
+    input (`inputs(..., seed=)`), so one program serves every seed."""
 
-    def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int = 0,
+    def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0):
         self.env, self.num_envs = env, num_envs
         self.queue = num_envs if queue is None else queue
@@ -75,26 +76,28 @@ class BatchRollout:
         self.devices = self.mesh.size
         self.params = sharding.replicate(self.mesh, policy.params)
         max_steps = int(max(t.max_steps for t in env.tasks))
+        self.seed_input = seed is None
         if self.queue == num_envs:
-            def run(params, k, t, n_valid):
+            def run(params, k, t, n_valid, seed_in=seed):
                 del n_valid  # padding rows of a static batch are run and ignored
                 final, totals, steps = rollout.run_episodes(env, dataclasses.replace(policy, params=params), k, t,
-                                                            max_steps, seed)
+                                                            max_steps, seed_in)
                 return rollout.EpisodeResults.of(final, totals), steps
         else:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
             constrain = sharding.slot_constraint(self.mesh)
 
-            def run(params, k, t, n_valid):
+            def run(params, k, t, n_valid, seed_in=seed):
                 return rollout.run_queue(env, dataclasses.replace(policy, params=params), k, t, n_valid, num_envs,
-                                         bound, seed, constrain=constrain, tail_slots=tail_envs)
+                                         bound, seed_in, constrain=constrain, tail_slots=tail_envs)
         self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
         self.compile_split: dict[str, float] = {}  # seconds: trace (Python), lower (to MLIR), xla (or cache load)
 
-    def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None) -> tuple:
+    def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
         """Device inputs for episodes (task_ids[i], episodes[i]), both [queue], of which the
-        first `n_valid` (default all) are run; the rest pad the static shape."""
+        first `n_valid` (default all) are run; the rest pad the static shape. `seed` is used
+        only by a rollout built with seed=None (else its own seed is part of the program)."""
         if len(task_ids) != self.queue:
             raise ValueError(f"expected {self.queue} episodes, got {len(task_ids)}")
         keys = np.asarray(self.env.initial_state_keys(task_ids, episodes, split="eval"))  # [Q, 2]
@@ -102,7 +105,8 @@ class BatchRollout:
         queue = sharding.shard_batch(self.mesh, queue) if self.queue == self.num_envs else \
             sharding.replicate(self.mesh, queue)
         n = np.int32(self.queue if n_valid is None else n_valid)
-        return (self.params, *queue, sharding.replicate(self.mesh, n))
+        seed_in = (sharding.replicate(self.mesh, np.int32(seed)),) if self.seed_input else ()
+        return (self.params, *queue, sharding.replicate(self.mesh, n), *seed_in)
 
     @property
     def compiled(self) -> bool:
@@ -145,7 +149,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     `tasks` (names) runs only those of the env's tasks: task ids are data, so an env over
     several suites evaluates each with one program. `rollouts`, a dict the caller keeps for
     this env and policy, holds the compiled rollouts for reuse by later calls of the same
-    shapes (no tracing, no compile: `compile_seconds` is then 0)."""
+    shapes (no tracing, no compile: `compile_seconds` is then 0); their seed is an input, so
+    calls of every seed share them (the same policy keys as a program built for the seed)."""
     results = {k: list(v) for k, v in (done or {}).items()}
     todo = pending_episodes(env, cfg, results, tasks)
     if not todo:
@@ -199,10 +204,11 @@ def _plan(env, policy, cfg, todo, seed, devices, rollouts=None):
         todo = sorted(todo, key=lambda te: -int(env.tasks[te[0]].max_steps))
     per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
     tail = cfg.tail_envs if refill else 0
-    key = (cfg.num_envs, per_call, tail, seed, None if devices is None else tuple(d.id for d in devices))
+    key = (cfg.num_envs, per_call, tail, None if devices is None else tuple(d.id for d in devices))
     run = (rollouts or {}).get(key)
     if run is None:
-        run = BatchRollout(env, policy, cfg.num_envs, seed, devices, queue=per_call, tail_envs=tail)
+        run = BatchRollout(env, policy, cfg.num_envs, None if rollouts is not None else seed, devices, queue=per_call,
+                           tail_envs=tail)
         if rollouts is not None:
             rollouts[key] = run
 
@@ -211,7 +217,7 @@ def _plan(env, policy, cfg, todo, seed, devices, rollouts=None):
             chunk = todo[start: start + per_call]
             pad = chunk + [chunk[-1]] * (per_call - len(chunk))  # static shape
             tids, eps = np.array(pad).T
-            yield chunk, run.inputs(tids, eps, n_valid=len(chunk))
+            yield chunk, run.inputs(tids, eps, n_valid=len(chunk), seed=seed)
     return run, calls()
 
 
