@@ -53,6 +53,13 @@ def _fingerprint() -> str:
     return jax_versions() + f"|JAX_PLATFORMS={os.environ.get('JAX_PLATFORMS', '')}"
 
 
+def gpu_possible() -> bool:
+    """Whether JAX in this process may use a CUDA GPU: a CUDA plugin is installed and
+    JAX_PLATFORMS, if set, names cuda or gpu. Starts no backend."""
+    platforms = os.environ.get("JAX_PLATFORMS", "").lower()
+    return "jax-cuda" in jax_versions() and (not platforms or any(p in platforms for p in ("cuda", "gpu")))
+
+
 def shipped_autotune(path: Path | None = None) -> Path | None:
     """`path` (default SHIPPED_AUTOTUNE) if this process may load it: its record (`path` with
     .json) names the installed versions, a CUDA plugin is installed and JAX_PLATFORMS (if set)
@@ -62,10 +69,7 @@ def shipped_autotune(path: Path | None = None) -> Path | None:
         made_with = json.loads(path.with_suffix(".json").read_text())["versions"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    versions = jax_versions()
-    platforms = os.environ.get("JAX_PLATFORMS", "").lower()
-    gpu_allowed = not platforms or any(p in platforms for p in ("cuda", "gpu"))
-    if made_with != versions or "jax-cuda" not in versions or not gpu_allowed or not path.is_file() \
+    if made_with != jax_versions() or not gpu_possible() or not path.is_file() \
             or any(c.isspace() for c in str(path)):  # XLA_FLAGS splits on whitespace
         return None
     return path

@@ -48,10 +48,10 @@ def seeded_keys(act_keys: jax.Array, seed: int | jax.Array) -> jax.Array:
     """The policy's episode keys [B, 2] under `seed`: folded with it, except that seed 0 keeps
     the historical keys. `seed` is a Python int (one program per seed) or a traced int32
     scalar (one program for every seed; the same keys)."""
-    if isinstance(seed, int):
-        return jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys) if seed else act_keys
+    if isinstance(seed, int) and seed == 0:
+        return act_keys
     folded = jax.vmap(lambda k: jax.random.fold_in(k, seed))(act_keys)
-    return jnp.where(seed == 0, act_keys, folded)
+    return folded if isinstance(seed, int) else jnp.where(seed == 0, act_keys, folded)
 
 
 def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int | jax.Array = 0,

@@ -45,10 +45,10 @@ def main(argv):
         raise app.UsageError(f"--out must end in .pbtxt (XLA reads the text format by its suffix), got {out}")
     if FLAGS.extend and not out.is_file():
         raise app.UsageError(f"--extend: no results at {out} to extend")
-    platforms = os.environ.get("JAX_PLATFORMS", "").lower()
-    if "jax-cuda" not in _xla.jax_versions() or (platforms and not any(p in platforms for p in ("cuda", "gpu"))):
+    if not _xla.gpu_possible():
         raise app.UsageError("XLA autotunes only on a GPU: no CUDA plugin installed (jax-cuda*) or JAX_PLATFORMS "
-                             f"excludes it ({platforms or 'unset'}); run this on the GPU the results are for")
+                             f"excludes it ({os.environ.get('JAX_PLATFORMS') or 'unset'}); run this on the GPU the "
+                             "results are for")
     common = [f"--suites={FLAGS.suites}", f"--episodes={FLAGS.episodes}", f"--num_envs={FLAGS.num_envs}", "--compile_only"]
     commands = []
     with tempfile.TemporaryDirectory(prefix="ship_autotune_") as tmp:
