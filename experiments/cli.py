@@ -187,6 +187,23 @@ def define_tail_flag() -> None:
                          "compilation cache, docs/evaluator.md). 0: off.")
 
 
+def define_store_flag() -> None:
+    """--executable_store, for the entry points that compile rollouts; `executable_store` makes
+    the store it names."""
+    flags.DEFINE_string("executable_store", str(cache_root() / "executables"),
+                        "Directory of compiled rollouts keyed by the code, settings, checkpoints, versions and devices "
+                        "that make them: a warm run loads its program without tracing it (GPUs; docs/evaluator.md). "
+                        "'' = off.")
+
+
+def executable_store(identity: object):
+    """The store of --executable_store for programs that `identity` (what the entry point loaded
+    and how it is set) helps name; None when the flag is empty."""
+    from heisd_jax import executable_store as store_lib  # noqa: PLC0415
+
+    return store_lib.ExecutableStore(flags.FLAGS.executable_store, identity) if flags.FLAGS.executable_store else None
+
+
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts
     "checkpoint": ("policy checkpoint", "Target VLA checkpoint (default: the shipped one)."),
     "drafter": ("drafter checkpoint", "Drafter checkpoint, trained on the target (default: the shipped one)."),

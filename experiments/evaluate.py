@@ -24,7 +24,7 @@ from envs import physics, tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, methods, results_io, sharding
+from heisd_jax import evaluate as ev, executable_store, methods, results_io, sharding
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
@@ -38,6 +38,7 @@ flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pend
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
 cli.define_tail_flag()
+cli.define_store_flag()
 flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache, "
                   "e.g. before a sweep), print where its compile time went, run nothing and write no results.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
@@ -85,10 +86,13 @@ def main(argv):
                                      **cli.cost_kwargs(), **kwargs)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
+    store = cli.executable_store({"method": FLAGS.method, "settings": kwargs,
+                                  "files": {name: executable_store.file_digest(getattr(FLAGS, name))
+                                            for name in methods.get(FLAGS.method).loads}})
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
     if FLAGS.compile_only:
-        split = ev.compile_rollout(env, policy, cfg, done)
+        split = ev.compile_rollout(env, policy, cfg, done, store=store)
         print(f"{FLAGS.method}: {n_todo} episodes pending, {cfg.num_envs} envs: " +
               (f"compiled in {_split_text(split)}" if split else "nothing to compile"))
         print(f"time: {time.perf_counter() - T_START:.0f}s wall")
@@ -137,7 +141,7 @@ def main(argv):
               f"control step, {t['env_steps'] / t['batch_seconds']:.0f} env steps/s), "
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
-    results = ev.evaluate(env, policy, cfg, done, on_batch)
+    results = ev.evaluate(env, policy, cfg, done, on_batch, store=store)
     summary = write(results)
     print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
           f"{'passes/ep':>11}")
@@ -157,8 +161,11 @@ def main(argv):
 
 
 def _split_text(split: dict[str, float]) -> str:
+    if "store" in split and not split["trace"]:
+        return f"{split['total']:.1f}s, loaded from the executable store (no tracing, lowering or XLA)"
     return (f"{split['total']:.1f}s = trace {split['trace']:.1f}s + lower {split['lower']:.1f}s + "
-            f"XLA {split['xla']:.1f}s (or its load from the compilation cache)")
+            f"XLA {split['xla']:.1f}s (or its load from the compilation cache)" +
+            (f" + store {split['store']:.1f}s (keying and saving)" if "store" in split else ""))
 
 
 if __name__ == "__main__":

@@ -16,7 +16,7 @@ import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import sharding
+from heisd_jax import executable_store, sharding
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,10 +61,14 @@ class BatchRollout:
     plain jit). queue == num_envs: one static batch, run until every env is done; queue >
     num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`).
     Compiled ahead of time, so that calls time execution only. `seed=None`: the seed is an
-    input (`inputs(..., seed=)`), so one program serves every seed."""
+    input (`inputs(..., seed=)`), so one program serves every seed. `store`: compiled programs
+    are loaded from it, and stored in it when compiled, where the backend supports it
+    (`executable_store.supported`); the key adds this rollout's env, policy and sizes to the
+    store's identity."""
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
-                 devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0):
+                 devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
+                 store: executable_store.ExecutableStore | None = None):
         self.env, self.num_envs = env, num_envs
         self.queue = num_envs if queue is None else queue
         if self.queue < num_envs:
@@ -92,7 +96,14 @@ class BatchRollout:
                                          bound, seed_in, constrain=constrain, tail_slots=tail_envs)
         self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
-        self.compile_split: dict[str, float] = {}  # seconds: trace (Python), lower (to MLIR), xla (or cache load)
+        # seconds: trace (Python), lower (to MLIR), xla (or its cache load); store (keying, and
+        # loading or saving the executable) where a store is used
+        self.compile_split: dict[str, float] = {}
+        self.store = store if store is not None and executable_store.supported() else None
+        self._identity = {"caller": None if store is None else store.identity, "env": env.config, "tasks": env.tasks,
+                          "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
+                          "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
+                          "devices": [d.id for d in self.mesh.devices.flat]}
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
         """Device inputs for episodes (task_ids[i], episodes[i]), both [queue], of which the
@@ -113,17 +124,31 @@ class BatchRollout:
         return self._compiled is not None
 
     def compile(self, inputs: tuple) -> None:
-        if self._compiled is None:
-            t = [time.perf_counter()]
-            traced = self._run.trace(*inputs)
+        if self._compiled is not None:
+            return
+        t = [time.perf_counter()]
+        key = self.store.key(self._identity, inputs) if self.store else None
+        self._compiled = self.store.load(key) if key else None
+        if self._compiled is not None:  # no tracing, lowering or XLA
             t.append(time.perf_counter())
-            lowered = traced.lower()
-            t.append(time.perf_counter())
-            self._compiled = lowered.compile()
-            sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
-            t.append(time.perf_counter())
-            self.compile_split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t, t[1:])}
+            self.compile_split = {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": t[-1] - t[0]}
             self.compile_seconds = t[-1] - t[0]
+            return
+        t.append(time.perf_counter())
+        traced = self._run.trace(*inputs)
+        t.append(time.perf_counter())
+        lowered = traced.lower()
+        t.append(time.perf_counter())
+        self._compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
+        sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
+        t.append(time.perf_counter())
+        if key:
+            self.store.save(key, self._compiled)
+            t.append(time.perf_counter())
+        self.compile_split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t[1:], t[2:])}
+        if self.store:
+            self.compile_split["store"] = (t[1] - t[0]) + (t[5] - t[4] if key else 0.0)
+        self.compile_seconds = t[-1] - t[0]
 
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
@@ -134,7 +159,7 @@ class BatchRollout:
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
              on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
              devices: Sequence[jax.Device] | None = None, tasks: Collection[str] | None = None,
-             rollouts: dict | None = None) -> dict[str, list]:
+             rollouts: dict | None = None, store: executable_store.ExecutableStore | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
     decode totals summed over the episode's actions (e.g. target_passes). The env slots are
@@ -150,12 +175,13 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     several suites evaluates each with one program. `rollouts`, a dict the caller keeps for
     this env and policy, holds the compiled rollouts for reuse by later calls of the same
     shapes (no tracing, no compile: `compile_seconds` is then 0); their seed is an input, so
-    calls of every seed share them (the same policy keys as a program built for the seed)."""
+    calls of every seed share them (the same policy keys as a program built for the seed).
+    `store`: where compiled rollouts are loaded from and saved to (`BatchRollout`)."""
     results = {k: list(v) for k, v in (done or {}).items()}
     todo = pending_episodes(env, cfg, results, tasks)
     if not todo:
         return results
-    run, calls = _plan(env, policy, cfg, todo, seed, devices, rollouts)
+    run, calls = _plan(env, policy, cfg, todo, seed, devices, rollouts, store)
     reused = run.compiled  # compiled by an earlier call: nothing to report as this call's compile
     for chunk, inputs in calls:
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
@@ -184,19 +210,20 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
 
 
 def compile_rollout(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
-                    seed: int = 0, devices: Sequence[jax.Device] | None = None) -> dict[str, float]:
+                    seed: int = 0, devices: Sequence[jax.Device] | None = None,
+                    store: executable_store.ExecutableStore | None = None) -> dict[str, float]:
     """Compiles the program `evaluate` would run for the pending episodes (filling JAX's
     persistent compilation cache, where on) and runs nothing; returns its compile seconds:
     trace, lower, xla and total. {} when no episode is pending."""
     todo = pending_episodes(env, cfg, done or {})
     if not todo:
         return {}
-    run, calls = _plan(env, policy, cfg, todo, seed, devices)
+    run, calls = _plan(env, policy, cfg, todo, seed, devices, store=store)
     run.compile(next(calls)[1])
     return {**run.compile_split, "total": run.compile_seconds}
 
 
-def _plan(env, policy, cfg, todo, seed, devices, rollouts=None):
+def _plan(env, policy, cfg, todo, seed, devices, rollouts=None, store=None):
     """The rollout for `todo` (pending (task, episode) pairs) and a generator of its calls:
     (episodes, device inputs), each call's episodes padded to the program's static queue."""
     refill = cfg.refill and jax.process_count() == 1  # several hosts: batches (refilling is tested on one host)
@@ -208,7 +235,7 @@ def _plan(env, policy, cfg, todo, seed, devices, rollouts=None):
     run = (rollouts or {}).get(key)
     if run is None:
         run = BatchRollout(env, policy, cfg.num_envs, None if rollouts is not None else seed, devices, queue=per_call,
-                           tail_envs=tail)
+                           tail_envs=tail, store=store)
         if rollouts is not None:
             rollouts[key] = run
 

@@ -1,0 +1,233 @@
+"""Compiled rollouts on disk, keyed by what makes them, so a warm run skips tracing and lowering.
+
+JAX's persistent compilation cache is keyed by the lowered program: before it can answer, a
+warm run still traces the rollout in Python and lowers it to MLIR, which is most of a warm
+start's compile (docs/evaluator.md). This store keys the compiled executable by what
+determines the program instead, all of it known before tracing:
+
+- the source of the `envs` and `heisd_jax` packages (every `.py` file's bytes);
+- the versions of jax, jaxlib, its plugins, mujoco and mujoco-mjx; XLA_FLAGS; the JAX settings
+  that change what is traced or lowered; the devices (platform, kind, ids) and process count;
+- the shapes, dtypes and shardings of the program's inputs (the parameters included);
+- an `identity` from the caller for everything else the program closes over: the env's
+  config and tasks, the policy's name and meta, the rollout's sizes, the method's settings,
+  digests of the files it loaded (`file_digest`).
+
+A key that misses compiles as usual (through JAX's cache) and stores the result; an entry
+that cannot be read or loaded is a miss, never an error. An identity that cannot be described
+stably (an object whose repr holds a memory address) keys nothing: the store is skipped.
+
+Two traps of XLA:CPU (jaxlib 0.10) are designed around. An executable that JAX loaded from its
+own compilation cache serializes without its kernels ("Function ... not found" when run), so
+on a CPU a program to be stored is compiled with that cache bypassed (`compile_storable`: a
+full compile once per key, then loads). And jaxlib sets its LAPACK kernels' pointers
+only while lowering an op that calls them, so a process that loads without lowering sets them
+first (`load`). Used on one process (`supported`); several hosts compile as usual.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import functools
+import hashlib
+import importlib.metadata
+import io
+import json
+import logging
+import os
+from pathlib import Path
+import pickle
+import tempfile
+from typing import Any
+
+import jax
+import numpy as np
+
+FORMAT = 1  # bump when the entry layout changes
+SUFFIX = ".jaxexe"
+_PACKAGES = ("envs", "heisd_jax")  # whose source makes the programs
+_DISTRIBUTIONS = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
+_JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
+                 "jax_threefry_partitionable", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
+                 "jax_use_shardy_partitioner", "jax_enable_checks", "jax_debug_nans", "jax_disable_jit")
+log = logging.getLogger(__name__)
+
+
+class Undescribable(ValueError):
+    """An identity holds an object without a stable description (its repr names a memory address)."""
+
+
+def supported(platform: str | None = None) -> bool:
+    """Whether executables are stored and loaded here: CPUs and GPUs, one process."""
+    return (platform or jax.default_backend()) in ("cpu", "gpu", "cuda", "rocm") and jax.process_count() == 1
+
+
+@contextlib.contextmanager
+def jax_cache_bypassed():
+    """Inside, JAX's persistent compilation cache is neither read nor written."""
+    from jax._src import compilation_cache  # noqa: PLC0415
+
+    before = jax.config.jax_enable_compilation_cache
+    jax.config.update("jax_enable_compilation_cache", False)
+    compilation_cache.reset_cache()  # JAX decides once whether the cache is used: decide again
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", before)
+        compilation_cache.reset_cache()
+
+
+def compile_storable(lowered):
+    """`lowered.compile()` for storing: on a CPU with JAX's compilation cache bypassed, since
+    XLA:CPU executables that JAX loaded from it serialize without their kernels (module doc)."""
+    if jax.default_backend() != "cpu":
+        return lowered.compile()
+    with jax_cache_bypassed():
+        return lowered.compile()
+
+
+def describe(obj: Any) -> Any:
+    """A JSON-able, process-independent description of `obj`: dataclasses by field, containers
+    by item, arrays by shape, dtype and a digest of their bytes. Raises `Undescribable` for an
+    object whose repr holds a memory address (a closure, an opaque handle)."""
+    if obj is None or isinstance(obj, (bool, int, str)):
+        return obj
+    if isinstance(obj, float):
+        return repr(obj)
+    if isinstance(obj, Path):
+        return str(obj)
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {"__type__": type(obj).__qualname__,
+                **{f.name: describe(getattr(obj, f.name)) for f in dataclasses.fields(obj)}}
+    if isinstance(obj, dict):
+        return {"__dict__": sorted((json.dumps(describe(k), sort_keys=True), describe(v)) for k, v in obj.items())}
+    if isinstance(obj, (list, tuple)):
+        return {"__seq__": type(obj).__qualname__, "items": [describe(v) for v in obj]}
+    if isinstance(obj, (np.ndarray, np.generic, jax.Array)):
+        a = np.asarray(obj)
+        return {"__array__": [list(a.shape), str(a.dtype), hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest()]}
+    text = repr(obj)
+    if " at 0x" in text or "object at" in text:
+        raise Undescribable(f"cannot key a compiled program on {type(obj).__qualname__}: its repr is {text[:80]!r}")
+    return {"__repr__": type(obj).__qualname__, "text": text}
+
+
+def file_digest(path: str | os.PathLike) -> str:
+    """sha256 of a file's bytes, or of a directory's files (relative names and bytes, sorted)."""
+    path = Path(path)
+    h = hashlib.sha256()
+    files = [path] if path.is_file() else sorted(p for p in path.rglob("*") if p.is_file())
+    if not files:
+        raise FileNotFoundError(f"nothing to digest at {path}")
+    for p in files:
+        h.update(str(p.relative_to(path) if p != path else p.name).encode() + b"\0")
+        with open(p, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    return h.hexdigest()
+
+
+@functools.cache
+def source_digest() -> str:
+    """sha256 over every `.py` file of the packages whose code makes the programs."""
+    import importlib  # noqa: PLC0415
+
+    h = hashlib.sha256()
+    for name in _PACKAGES:
+        root = Path(importlib.import_module(name).__file__).parent
+        for p in sorted(root.rglob("*.py")):
+            h.update(f"{name}/{p.relative_to(root)}".encode() + b"\0" + p.read_bytes())
+    return h.hexdigest()
+
+
+def environment() -> dict:
+    """What outside the code changes a compiled program: versions, flags, JAX settings, devices."""
+    versions = {}
+    for dist in importlib.metadata.distributions():
+        name = (dist.metadata.get("Name") or "").lower()
+        if name in _DISTRIBUTIONS or name.startswith(("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm")):
+            versions[name] = dist.version
+    devices = jax.devices()
+    return {"versions": dict(sorted(versions.items())), "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+            "jax": {k: str(getattr(jax.config, k, None)) for k in _JAX_SETTINGS},
+            "devices": [[d.platform, d.device_kind, d.id, d.process_index] for d in devices],
+            "processes": jax.process_count()}
+
+
+def input_signature(inputs: Any) -> Any:
+    """The program's inputs as it sees them: tree structure, shapes, dtypes, weak types, shardings."""
+    leaves, tree = jax.tree_util.tree_flatten(inputs)
+    return {"tree": str(tree), "leaves": [[list(np.shape(x)), str(getattr(x, "dtype", type(x).__name__)),
+                                           bool(getattr(x, "weak_type", False)), str(getattr(x, "sharding", ""))]
+                                          for x in leaves]}
+
+
+class ExecutableStore:
+    """Compiled programs in `directory`, one file per key (written atomically). `identity`: what
+    the caller knows makes its programs beyond what `BatchRollout` adds itself (a method's
+    settings, digests of the files it loaded)."""
+
+    def __init__(self, directory: str | os.PathLike, identity: Any = None):
+        self.directory = Path(directory).expanduser()
+        self.identity = identity
+
+    def key(self, identity: Any, inputs: Any) -> str | None:
+        """The key of the program that `identity` names, called with `inputs`; None when the
+        identity cannot be described stably (then nothing is stored or loaded)."""
+        try:
+            described = describe(identity)
+        except Undescribable as e:
+            log.warning("executable store skipped: %s", e)
+            return None
+        text = json.dumps({"format": FORMAT, "source": source_digest(), "environment": environment(),
+                           "inputs": input_signature(inputs), "identity": described}, sort_keys=True)
+        return hashlib.sha256(text.encode()).hexdigest()
+
+    def path(self, key: str) -> Path:
+        return self.directory / f"{key}{SUFFIX}"
+
+    def load(self, key: str | None):
+        """The stored `jax.stages.Compiled` of `key`, or None (no entry, or one that fails to load)."""
+        if key is None or not self.path(key).is_file():
+            return None
+        from jax.experimental import serialize_executable  # noqa: PLC0415
+
+        try:
+            with open(self.path(key), "rb") as f:
+                fmt, payload, in_tree, out_tree = pickle.load(f)
+            if fmt != FORMAT:
+                return None
+            if jax.default_backend() == "cpu":
+                from jax._src.lax import linalg  # noqa: PLC0415
+
+                linalg.initialize_lapack()  # the pointers lowering would have set (module doc)
+            return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+        except Exception as e:  # noqa: BLE001  (a stale or truncated entry is a miss, and is rewritten)
+            log.warning("executable store: cannot load %s (%s: %s); compiling", self.path(key), type(e).__name__, e)
+            return None
+
+    def save(self, key: str | None, compiled) -> bool:
+        """Writes `compiled` under `key` (atomically: a crash leaves no partial entry). False when it
+        cannot be serialized or written (a warning; the run goes on)."""
+        if key is None:
+            return False
+        from jax.experimental import serialize_executable  # noqa: PLC0415
+
+        try:
+            payload, in_tree, out_tree = serialize_executable.serialize(compiled)
+            buf = io.BytesIO()
+            pickle.dump((FORMAT, payload, in_tree, out_tree), buf, protocol=pickle.HIGHEST_PROTOCOL)
+            self.directory.mkdir(parents=True, exist_ok=True)
+            fd, tmp = tempfile.mkstemp(dir=self.directory, suffix=".tmp")
+            try:
+                with os.fdopen(fd, "wb") as f:
+                    f.write(buf.getvalue())
+                os.replace(tmp, self.path(key))
+            except BaseException:
+                Path(tmp).unlink(missing_ok=True)
+                raise
+            return True
+        except Exception as e:  # noqa: BLE001
+            log.warning("executable store: not saved (%s: %s)", type(e).__name__, e)
+            return False

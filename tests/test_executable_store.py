@@ -1,0 +1,126 @@
+"""The executable store (heisd_jax.executable_store): keys that change with what makes a program
+and only with it, entries that survive a fresh process (XLA:CPU's two traps included), and a
+bad entry read as a miss."""
+
+import dataclasses
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import executable_store as xs
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Config:
+    size: int = 3
+    scale: float = 0.5
+    names: tuple = ("a", "b")
+
+
+def test_description_is_stable_and_follows_every_field():
+    base = xs.describe({"cfg": _Config(), "table": np.arange(4.0), "path": Path("x")})
+    assert base == xs.describe({"path": Path("x"), "table": np.arange(4.0), "cfg": _Config()})  # dict order
+    for changed in ({"cfg": _Config(size=4)}, {"cfg": _Config(scale=0.25)}, {"cfg": _Config(names=("a",))},
+                    {"table": np.arange(4.0) + 1e-6}, {"table": np.arange(4, dtype=np.float32)}, {"path": Path("y")}):
+        other = {"cfg": _Config(), "table": np.arange(4.0), "path": Path("x"), **changed}
+        assert xs.describe(other) != base, changed
+
+
+def test_an_object_without_a_stable_description_keys_nothing(tmp_path):
+    with pytest.raises(xs.Undescribable):
+        xs.describe({"fn": lambda x: x})
+    assert xs.ExecutableStore(tmp_path).key({"fn": object()}, (np.zeros(2),)) is None
+
+
+def test_key_follows_identity_inputs_and_flags(tmp_path, monkeypatch):
+    store = xs.ExecutableStore(tmp_path)
+    x = (np.zeros((2, 3), np.float32), {"p": np.ones(4, np.float32)})
+    k = store.key({"method": "ar"}, x)
+    assert k == store.key({"method": "ar"}, (np.ones((2, 3), np.float32), {"p": np.zeros(4, np.float32)}))  # values: no
+    assert k != store.key({"method": "expert"}, x)
+    assert k != store.key({"method": "ar"}, (np.zeros((2, 4), np.float32), x[1]))
+    assert k != store.key({"method": "ar"}, (np.zeros((2, 3), np.int32), x[1]))
+    assert k != store.key({"method": "ar"}, (x[0], {"q": x[1]["p"]}))
+    monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
+    assert k != store.key({"method": "ar"}, x)
+
+
+def test_file_digest_reads_contents_and_names(tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    for d in (a, b):
+        (d / "sub").mkdir(parents=True)
+        (d / "sub" / "w.bin").write_bytes(b"weights")
+    assert xs.file_digest(a) == xs.file_digest(b)
+    (b / "sub" / "w.bin").write_bytes(b"weightz")
+    assert xs.file_digest(a) != xs.file_digest(b)
+    (b / "sub" / "w.bin").rename(b / "sub" / "v.bin")
+    (b / "sub" / "v.bin").write_bytes(b"weights")
+    assert xs.file_digest(a) != xs.file_digest(b)
+    with pytest.raises(FileNotFoundError):
+        xs.file_digest(tmp_path / "missing")
+
+
+def _program(x):  # a LAPACK call on a CPU (Cholesky), as MJX's constraint solver makes
+    m = x @ x.T + 3.0 * jnp.eye(x.shape[0])
+    return jnp.linalg.cholesky(m).sum(axis=1) + jnp.sin(x).mean()
+
+
+_SCRIPT = """
+import sys, numpy as np, jax, jax.numpy as jnp
+from experiments import cli
+from heisd_jax import executable_store as xs
+from tests.test_executable_store import _program
+mode, store_dir, cache = sys.argv[1:4]
+cli.setup_compilation_cache(cache)
+jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+store, x = xs.ExecutableStore(store_dir), np.linspace(-1.0, 1.0, 12, dtype=np.float32).reshape(4, 3)
+key = store.key({"program": "cholesky"}, (x,))
+if mode == "warm":
+    jax.jit(_program)(x).block_until_ready()  # compiled and written to JAX's cache
+elif mode == "save":
+    assert store.load(key) is None
+    assert store.save(key, xs.compile_storable(jax.jit(_program).trace(x).lower()))
+else:
+    compiled = store.load(key)
+    assert compiled is not None
+    print(np.asarray(compiled(x)).tobytes().hex())
+"""
+
+
+def _run(*args):
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"}
+    out = subprocess.run([sys.executable, "-c", _SCRIPT, *map(str, args)], cwd=ROOT, env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout.strip()
+
+
+def test_a_stored_program_runs_in_a_fresh_process(tmp_path):
+    """Saved by a process whose JAX compilation cache already held the program (so that a plain
+    compile would load it, and store it without its kernels), loaded by another that lowers
+    nothing (so that LAPACK's kernels are not initialized by lowering): the same result."""
+    cache, store = tmp_path / "cache", tmp_path / "store"
+    _run("warm", store, cache)
+    assert any(p.name.startswith("jit__program") for p in cache.iterdir())
+    _run("save", store, cache)
+    x = np.linspace(-1.0, 1.0, 12, dtype=np.float32).reshape(4, 3)
+    assert _run("load", store, cache) == np.asarray(jax.jit(_program)(x)).tobytes().hex()
+
+
+def test_a_bad_entry_is_a_miss_and_is_rewritten(tmp_path):
+    store = xs.ExecutableStore(tmp_path)
+    x = np.ones((4, 3), np.float32)
+    key = store.key({"program": "cholesky"}, (x,))
+    store.path(key).write_bytes(b"truncated")
+    assert store.load(key) is None
+    assert store.save(key, xs.compile_storable(jax.jit(_program).trace(x).lower()))
+    np.testing.assert_array_equal(np.asarray(store.load(key)(x)), np.asarray(jax.jit(_program)(x)))
+    assert [p.name for p in tmp_path.iterdir()] == [store.path(key).name]  # no temporary left behind
