@@ -3,6 +3,7 @@ and only with it, entries that survive a fresh process (XLA:CPU's two traps incl
 bad entry read as a miss."""
 
 import dataclasses
+import json
 import os
 import subprocess
 import sys
@@ -124,3 +125,21 @@ def test_a_bad_entry_is_a_miss_and_is_rewritten(tmp_path):
     assert store.save(key, xs.compile_storable(jax.jit(_program).trace(x).lower()))
     np.testing.assert_array_equal(np.asarray(store.load(key)(x)), np.asarray(jax.jit(_program)(x)))
     assert [p.name for p in tmp_path.iterdir()] == [store.path(key).name]  # no temporary left behind
+
+
+@pytest.mark.slow
+def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path):
+    cmd = [sys.executable, "-m", "experiments.evaluate", "--method=expert", "--suites=spatial",
+           "--tasks=left_block_plate", "--episodes=1", "--num_envs=2", "--compilation_cache=",
+           f"--executable_store={tmp_path / 'store'}"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    runs = []
+    for i in range(2):
+        out = subprocess.run([*cmd, f"--out={tmp_path / f'{i}.json'}"], cwd=ROOT, env=env, capture_output=True,
+                             text=True, timeout=900)
+        assert out.returncode == 0, out.stderr[-2000:]
+        runs.append((out.stdout, json.loads((tmp_path / f"{i}.json").read_text())))
+    assert "loaded from the executable store" not in runs[0][0] and "store" in runs[0][1]["timing"]["compile_split"]
+    assert "loaded from the executable store" in runs[1][0]
+    assert runs[1][1]["timing"]["compile_split"]["trace"] == 0.0
+    assert runs[0][1]["episodes"] == runs[1][1]["episodes"]
