@@ -196,12 +196,17 @@ def define_store_flag() -> None:
                         "'' = off.")
 
 
-def executable_store(identity: object):
-    """The store of --executable_store for programs that `identity` (what the entry point loaded
-    and how it is set) helps name; None when the flag is empty."""
-    from heisd_jax import executable_store as store_lib  # noqa: PLC0415
+def executable_store(method: str, settings: dict):
+    """The store of --executable_store for `method`'s programs at `settings` (its flags), named
+    also by digests of the files it loads (--checkpoint, --drafter, --datastore: a retrained
+    checkpoint at the same path is another program); None when the flag is empty."""
+    from heisd_jax import executable_store as store_lib, methods  # noqa: PLC0415
 
-    return store_lib.ExecutableStore(flags.FLAGS.executable_store, identity) if flags.FLAGS.executable_store else None
+    if not flags.FLAGS.executable_store:
+        return None
+    files = {name: store_lib.file_digest(getattr(flags.FLAGS, name)) for name in methods.get(method).loads}
+    return store_lib.ExecutableStore(flags.FLAGS.executable_store,
+                                     {"method": method, "settings": settings, "files": files})
 
 
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts

@@ -24,7 +24,7 @@ from envs import physics, tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, executable_store, methods, results_io, sharding
+from heisd_jax import evaluate as ev, methods, results_io, sharding
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
@@ -86,9 +86,7 @@ def main(argv):
                                      **cli.cost_kwargs(), **kwargs)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
-    store = cli.executable_store({"method": FLAGS.method, "settings": kwargs,
-                                  "files": {name: executable_store.file_digest(getattr(FLAGS, name))
-                                            for name in methods.get(FLAGS.method).loads}})
+    store = cli.executable_store(FLAGS.method, kwargs)
     n_total = len(task_list) * cfg.episodes_per_task
     n_todo = len(ev.pending_episodes(env, cfg, done))
     if FLAGS.compile_only:

@@ -46,6 +46,7 @@ flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
 flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 cli.define_tail_flag()
+cli.define_store_flag()
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
@@ -68,7 +69,8 @@ def _provenance() -> dict:
 class Programs:
     """One env over every task of the sweep and, per method, settings and batch size, one
     policy and its compiled rollouts: task ids and seeds are data, so the suites and seeds of
-    a method share one program, compiled once and not traced again."""
+    a method share one program, compiled once and not traced again (and, across runs, loaded
+    from the executable store)."""
 
     def __init__(self, task_list):
         self.task_list, self.envs, self.built = tuple(task_list), {}, {}
@@ -84,12 +86,12 @@ class Programs:
             policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                          datastore=FLAGS.datastore, batch_size=cell["num_envs"] // jax.device_count(),
                                          **cli.cost_kwargs(), **settings)
-            self.built[key] = (env, policy, {})
+            self.built[key] = (env, policy, {}, cli.executable_store(name, settings))
         return self.built[key]
 
 
 def run_cell(cell: dict, task_list, programs: Programs, progress) -> dict:
-    env, policy, rollouts = programs.get(cell)
+    env, policy, rollouts, store = programs.get(cell)
     timing = {"batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0,
               "tail_envs": FLAGS.tail_envs}
 
@@ -102,7 +104,7 @@ def run_cell(cell: dict, task_list, programs: Programs, progress) -> dict:
     t0 = time.perf_counter()
     cfg = ev.EvalConfig(episodes_per_task=cell["episodes"], num_envs=cell["num_envs"], tail_envs=FLAGS.tail_envs)
     results = ev.evaluate(env, policy, cfg, on_batch=on_batch, seed=cell["seed"], tasks={t.name for t in task_list},
-                          rollouts=rollouts)
+                          rollouts=rollouts, store=store)
     summary = ev.summarize(env.tasks, results)
     timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / max(timing["control_steps"], 1)
     timing["wall_seconds"] = time.perf_counter() - t0
