@@ -203,7 +203,7 @@ def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray
 def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
               num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
               constrain: Callable[[Any, int], Any] = lambda tree, n: tree,
-              tail_slots: int = 0) -> tuple[EpisodeResults, jnp.ndarray]:
+              tail_slots: int = 0, split: bool = False) -> tuple[EpisodeResults, jnp.ndarray] | tuple:
     """Runs the first `n_valid` episodes of a queue (`keys` [N, 2] initial-state keys and
     `task_ids` [N], N static) in `num_slots` envs: when an env's episode ends, its outcome
     is written to the episode's row and the slot takes the next pending episode, so no env
@@ -230,8 +230,9 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     few live envs. The program holds a second copy of the control step, at the tail's
     size (a longer compile); an episode's steps are the same at either size wherever the
     policy's and env's per-row arithmetic does not depend on the batch size. Batch-wide
-    policy-state leaves are kept as they are. Returns the per-episode results and the
-    number of control steps the loop ran."""
+    policy-state leaves are kept as they are. `split` (with `tail_slots`): return the loop's
+    carry where the tail starts, for `run_queue_tail` in a program of its own. Returns the
+    per-episode results and the number of control steps the loop ran."""
     n_queue, s = keys.shape[0], num_slots
     if not 0 <= tail_slots < s:
         raise ValueError(f"tail_slots must be 0 (off) or in 1..{s - 1} (below num_slots {s}), got {tail_slots}")
@@ -272,21 +273,7 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         slot_ep = slot_ep.at[jnp.where(take, rows, s)].set(eps, mode="drop")
         return t, jnp.minimum(blank + r, s), next_ep + jnp.sum(take), slot_ep, state, pstate, act_keys, totals, results
 
-    def step(c):
-        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        action, pstate, stats = _act(policy, state, pstate, act_keys, None)
-        running = ~state.done
-        totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
-        state = jax.vmap(env.step)(state, action)
-        ended = (slot_ep < n_queue) & state.done
-        at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
-        results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
-        slot_ep = jnp.where(ended, n_queue, slot_ep)
-        return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
-
-    def cond(c):
-        t, blank, next_ep, slot_ep, *_ = c
-        return (t < max_steps) & (jnp.any(slot_ep < n_queue) | (next_ep < n_valid))
+    step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue)
 
     def body(c):
         blank, next_ep, slot_ep = c[1:4]
@@ -307,9 +294,23 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         return cond(c) & ~tail
 
     c = jax.lax.while_loop(head_cond, body, c)
-    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+    if split:
+        return c
+    return run_queue_tail(env, policy, c, n_valid, max_steps, tail_slots, constrain)
+
+
+def run_queue_tail(env: TabletopEnv, policy: Policy, carry: tuple, n_valid: jnp.ndarray, max_steps: int,
+                   tail_slots: int, constrain: Callable[[Any, int], Any] = lambda tree, n: tree
+                   ) -> tuple[EpisodeResults, jnp.ndarray]:
+    """The queue's tail: from the carry `run_queue(..., split=True)` returns (the queue empty,
+    at most `tail_slots` slots running), those slots gathered into a batch of `tail_slots`
+    and stepped until every episode has ended. As `run_queue` with `tail_slots` returns, in a
+    program of its own, so that it can compile while the head runs."""
+    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = carry
+    n_queue = jax.tree.leaves(results)[0].shape[0]
+    step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue)
     keep = jnp.argsort(slot_ep == n_queue, stable=True)[:tail_slots]  # running slots first, then finished ones
-    pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row)
+    pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row_leaves(policy, state))
     tail = constrain(jax.tree.map(lambda x: x[keep], (slot_ep, state)) + (pstate,) +
                      jax.tree.map(lambda x: x[keep], (act_keys, totals)), tail_slots)
 
@@ -319,3 +320,32 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
 
     c = jax.lax.while_loop(cond, tail_body, (t, blank, next_ep, *tail, results))
     return c[-1], c[0]
+
+
+def _queue_step(env: TabletopEnv, policy: Policy, n_queue: int) -> Callable[[tuple], tuple]:
+    """One control step of a queue's slots: act, step the envs, write the outcome of every
+    episode that ended to its row (a slot's episode index n_queue: empty)."""
+
+    def step(c):
+        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        action, pstate, stats = _act(policy, state, pstate, act_keys, None)
+        running = ~state.done
+        totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
+        state = jax.vmap(env.step)(state, action)
+        ended = (slot_ep < n_queue) & state.done
+        at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
+        results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
+        slot_ep = jnp.where(ended, n_queue, slot_ep)
+        return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
+
+    return step
+
+
+def _queue_cond(max_steps: int, n_valid: jnp.ndarray, n_queue: int) -> Callable[[tuple], jnp.ndarray]:
+    """Whether a queue's loop goes on: within `max_steps`, and an episode still runs or is pending."""
+
+    def cond(c):
+        t, blank, next_ep, slot_ep, *_ = c
+        return (t < max_steps) & (jnp.any(slot_ep < n_queue) | (next_ep < n_valid))
+
+    return cond

@@ -159,11 +159,18 @@ def main(argv):
 
 
 def _split_text(split: dict[str, float]) -> str:
-    if "store" in split and not split["trace"]:
-        return f"{split['total']:.1f}s, loaded from the executable store (no tracing, lowering or XLA)"
-    return (f"{split['total']:.1f}s = trace {split['trace']:.1f}s + lower {split['lower']:.1f}s + "
-            f"XLA {split['xla']:.1f}s (or its load from the compilation cache)" +
-            (f" + store {split['store']:.1f}s (keying and saving)" if "store" in split else ""))
+    def stages(pre: str) -> str:
+        if f"{pre}store" in split and not split[f"{pre}trace"]:
+            return f"loaded from the executable store in {split[f'{pre}store']:.1f}s (no tracing, lowering or XLA)"
+        return (f"trace {split[f'{pre}trace']:.1f}s + lower {split[f'{pre}lower']:.1f}s + XLA "
+                f"{split[f'{pre}xla']:.1f}s (or its load from the compilation cache)" +
+                (f" + store {split[f'{pre}store']:.1f}s (keying and saving)" if f"{pre}store" in split else ""))
+
+    text = f"{split['total']:.1f}s: {stages('')}"
+    if "tail_trace" in split:
+        text += (f"; the tail's program, beside the head's run: {stages('tail_')}, waited for "
+                 f"{split.get('tail_wait', 0.0):.1f}s")
+    return text
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ resume an interrupted run.
 
 from __future__ import annotations
 
+import concurrent.futures
 import dataclasses
 import time
 from typing import Callable, Collection, Sequence
@@ -55,6 +56,9 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
     return out
 
 
+_BACKGROUND = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="heisd-compile")
+
+
 class BatchRollout:
     """The jitted rollout of `queue` episodes in `num_envs` env slots, sharded over `devices`
     (default: all; the env slots are split, the policy's parameters replicated; one device: a
@@ -64,7 +68,11 @@ class BatchRollout:
     input (`inputs(..., seed=)`), so one program serves every seed. `store`: compiled programs
     are loaded from it, and stored in it when compiled, where the backend supports it
     (`executable_store.supported`); the key adds this rollout's env, policy and sizes to the
-    store's identity."""
+    store's identity. `tail_envs` (with a queue): the tail (`rollout.run_queue_tail`) is a
+    program of its own, compiled in the background while the head runs, so that its compile
+    adds to the wall time only where it outlasts the head."""
+
+    _tail = None
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
@@ -91,19 +99,29 @@ class BatchRollout:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
             constrain = sharding.slot_constraint(self.mesh)
 
-            def run(params, k, t, n_valid, seed_in=seed):
+            def run(params, k, t, n_valid, seed_in=seed):  # with a tail: until the tail starts (its carry)
                 return rollout.run_queue(env, dataclasses.replace(policy, params=params), k, t, n_valid, num_envs,
-                                         bound, seed_in, constrain=constrain, tail_slots=tail_envs)
+                                         bound, seed_in, constrain=constrain, tail_slots=tail_envs,
+                                         split=tail_envs > 0)
+
+            if tail_envs:
+                def tail(params, carry, n_valid):
+                    return rollout.run_queue_tail(env, dataclasses.replace(policy, params=params), carry, n_valid,
+                                                  bound, tail_envs, constrain)
+                self._tail = jax.jit(tail)
         self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
         # seconds: trace (Python), lower (to MLIR), xla (or its cache load); store (keying, and
-        # loading or saving the executable) where a store is used
+        # loading or saving the executable) where a store is used; tail_wait, with a tail: how
+        # long the run waited for the tail's program, compiled in the background as the head ran
         self.compile_split: dict[str, float] = {}
         self.store = store if store is not None and executable_store.supported() else None
         self._identity = {"caller": None if store is None else store.identity, "env": env.config, "tasks": env.tasks,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
                           "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
                           "devices": [d.id for d in self.mesh.devices.flat]}
+        self._tail_compiled = self._tail_future = None
+        self.last_wait = 0.0  # seconds the last call waited for the tail's compile (counted as compile)
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
         """Device inputs for episodes (task_ids[i], episodes[i]), both [queue], of which the
@@ -124,36 +142,63 @@ class BatchRollout:
         return self._compiled is not None
 
     def compile(self, inputs: tuple) -> None:
+        """Compiles (or loads) the program for `inputs`; with a tail, starts the tail's compile
+        in the background (`__call__` waits for it once the head has run)."""
         if self._compiled is not None:
             return
+        self._compiled, self.compile_split = self._compile(self._run, inputs, "head" if self._tail else "all")
+        self.compile_seconds = sum(self.compile_split.values())
+        if self._tail:
+            self._tail_future = _BACKGROUND.submit(self._compile_tail, inputs)
+
+    def _compile(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
+        """(compiled `fn` for `inputs`, its seconds by stage); loaded from or saved to the store
+        under this rollout's identity, `part` and `key_inputs` (default: `inputs`)."""
         t = [time.perf_counter()]
-        key = self.store.key(self._identity, inputs) if self.store else None
-        self._compiled = self.store.load(key) if key else None
-        if self._compiled is not None:  # no tracing, lowering or XLA
-            t.append(time.perf_counter())
-            self.compile_split = {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": t[-1] - t[0]}
-            self.compile_seconds = t[-1] - t[0]
-            return
+        key = self.store.key({**self._identity, "part": part}, key_inputs or inputs) if self.store else None
+        compiled = self.store.load(key) if key else None
+        if compiled is not None:  # no tracing, lowering or XLA
+            return compiled, {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": time.perf_counter() - t[0]}
         t.append(time.perf_counter())
-        traced = self._run.trace(*inputs)
+        traced = fn.trace(*inputs)
         t.append(time.perf_counter())
         lowered = traced.lower()
         t.append(time.perf_counter())
-        self._compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
-        sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
+        compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
+        sharding.sync(f"heisd_jax.evaluate: rollout {part} compiled")  # several hosts: the slowest counts
         t.append(time.perf_counter())
+        split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t[1:], t[2:])}
         if key:
-            self.store.save(key, self._compiled)
-            t.append(time.perf_counter())
-        self.compile_split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t[1:], t[2:])}
+            self.store.save(key, compiled)
         if self.store:
-            self.compile_split["store"] = (t[1] - t[0]) + (t[5] - t[4] if key else 0.0)
-        self.compile_seconds = t[-1] - t[0]
+            split["store"] = (t[1] - t[0]) + (time.perf_counter() - t[4] if key else 0.0)
+        return compiled, split
+
+    def _compile_tail(self, inputs: tuple):
+        params, *_, n_valid = inputs[:4]
+        carry = self._compiled.out_info  # the head's carry, as the tail takes it
+        return self._compile(self._tail, (params, carry, n_valid), "tail", key_inputs=inputs)
+
+    def wait_compiled(self) -> None:
+        """Waits for a tail's background compile; its seconds join compile_split as `tail_*`."""
+        if self._tail_compiled is None and self._tail_future is not None:
+            self._tail_compiled, split = self._tail_future.result()
+            self.compile_split.update({f"tail_{k}": v for k, v in split.items()})
 
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
         self.compile(inputs)
-        return sharding.fetch(self._compiled(*inputs))
+        if self._tail is None:
+            return sharding.fetch(self._compiled(*inputs))
+        carry = jax.block_until_ready(self._compiled(*inputs))
+        t0 = time.perf_counter()
+        waited = self._tail_compiled is None
+        self.wait_compiled()
+        self.last_wait = time.perf_counter() - t0
+        if waited:  # what the tail's compile added to the wall time
+            self.compile_split["tail_wait"] = self.last_wait
+            self.compile_seconds += self.last_wait
+        return sharding.fetch(self._tail_compiled(inputs[0], carry, inputs[3]))
 
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
@@ -187,7 +232,7 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
         out, loop_steps = run(inputs)
-        dt = time.perf_counter() - t0
+        dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
         for i, (t, e) in enumerate(chunk):
             name = env.tasks[t].name
             rec = results.setdefault(name, [None] * cfg.episodes_per_task)
@@ -214,13 +259,16 @@ def compile_rollout(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, d
                     store: executable_store.ExecutableStore | None = None) -> dict[str, float]:
     """Compiles the program `evaluate` would run for the pending episodes (filling JAX's
     persistent compilation cache, where on) and runs nothing; returns its compile seconds:
-    trace, lower, xla and total. {} when no episode is pending."""
+    trace, lower, xla (their tail_* twins for a tail's program, compiled alongside), store
+    where used, and total (wall). {} when no episode is pending."""
     todo = pending_episodes(env, cfg, done or {})
     if not todo:
         return {}
     run, calls = _plan(env, policy, cfg, todo, seed, devices, store=store)
+    t0 = time.perf_counter()
     run.compile(next(calls)[1])
-    return {**run.compile_split, "total": run.compile_seconds}
+    run.wait_compiled()
+    return {**run.compile_split, "total": time.perf_counter() - t0}
 
 
 def _plan(env, policy, cfg, todo, seed, devices, rollouts=None, store=None):

@@ -117,6 +117,20 @@ def test_a_tail_in_fewer_slots_ends_every_episode_as_when_run_alone(case, slots,
     assert np.all(np.asarray(out.totals["batch"][v]) >= tail * np.asarray(final.step[v]))
 
 
+def test_a_tail_in_a_program_of_its_own_runs_as_in_one_program(case):
+    """`run_queue(split=True)` then `run_queue_tail` on its carry, two programs (the evaluator
+    compiles the second while the first runs), give what one program with the tail gives."""
+    keys, task_ids, *_ = case
+    n = jnp.int32(N_EPISODES)
+    one = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _sized_policy(), k, t, n, 4, 1000, tail_slots=2))
+    head = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _sized_policy(), k, t, n, 4, 1000, tail_slots=2,
+                                                     split=True))
+    tail = jax.jit(lambda c, n: rollout.run_queue_tail(_Env(), _sized_policy(), c, n, 1000, 2))
+    (out, steps), (out2, steps2) = one(keys, task_ids, n), tail(head(keys, task_ids, n), n)
+    assert int(steps) == int(steps2)
+    jax.tree.map(np.testing.assert_array_equal, out, out2)
+
+
 def test_a_tail_not_below_the_slots_is_refused(case):
     keys, task_ids, *_ = case
     for tail in (-1, 4, 5):
