@@ -55,6 +55,7 @@ flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
 
 def main(argv):
     del argv
+    t_main = time.perf_counter()
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
@@ -97,6 +98,9 @@ def main(argv):
         return
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")
     t_start = time.perf_counter()
+    # host = start (imports, flags, cache set-up) + setup (the env, the policy and what it
+    # loads, the store's digests; the device's start-up) + other (inputs, results written)
+    host_split = {"start": t_main - T_START, "setup": t_start - t_main}
     progress = {"episodes": n_total - n_todo}
     # Wall-clock of this invocation's batches (a resumed run times only what it ran). Its wall
     # time splits into compile (the rollout's, tracing included), run (the batches: device
@@ -121,6 +125,7 @@ def main(argv):
             timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
         timing["wall_seconds"] = time.perf_counter() - T_START
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
+        timing["host_split"] = {**host_split, "other": timing["host_seconds"] - sum(host_split.values())}
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
                                                  "timing": timing, **as_ar, **made})
         return summary
@@ -152,7 +157,8 @@ def main(argv):
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
     print(f"time: {timing['wall_seconds']:.0f}s wall = compile {timing['compile_seconds']:.0f}s + run "
-          f"{timing['batch_seconds']:.0f}s + host {timing['host_seconds']:.0f}s")
+          f"{timing['batch_seconds']:.0f}s + host {timing['host_seconds']:.0f}s (start {host_split['start']:.1f}s, "
+          f"env and policy {host_split['setup']:.1f}s, other {timing['host_split']['other']:.1f}s)")
     if timing.get("compile_split"):
         print(f"compile: {_split_text({**timing['compile_split'], 'total': timing['compile_seconds']})}")
     print(f"results: {os.path.abspath(FLAGS.out)}")
