@@ -6,7 +6,8 @@ start's compile (docs/evaluator.md). This store keys the compiled executable by 
 determines the program instead, all of it known before tracing:
 
 - the source of the `envs` and `heisd_jax` packages (every `.py` file's bytes);
-- the versions of jax, jaxlib, its plugins, mujoco and mujoco-mjx; XLA_FLAGS; the JAX settings
+- the versions of jax, jaxlib, its plugins, mujoco and mujoco-mjx; XLA_FLAGS (and the bytes of
+  the files they name, such as autotuning results to load); the JAX settings
   that change what is traced or lowered; the devices (platform, kind, ids) and process count;
 - the shapes, dtypes and shardings of the program's inputs (the parameters included);
 - an `identity` from the caller for everything else the program closes over: the env's
@@ -149,7 +150,10 @@ def environment() -> dict:
         if name in _DISTRIBUTIONS or name.startswith(("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm")):
             versions[name] = dist.version
     devices = jax.devices()
-    return {"versions": dict(sorted(versions.items())), "XLA_FLAGS": os.environ.get("XLA_FLAGS", ""),
+    flags = os.environ.get("XLA_FLAGS", "")
+    flag_files = {value: file_digest(value) for _, _, value in (f.partition("=") for f in flags.split())
+                  if value and Path(value).is_file()}  # e.g. the autotuning results XLA loads
+    return {"versions": dict(sorted(versions.items())), "XLA_FLAGS": flags, "flag_files": flag_files,
             "jax": {k: str(getattr(jax.config, k, None)) for k in _JAX_SETTINGS},
             "devices": [[d.platform, d.device_kind, d.id, d.process_index] for d in devices],
             "processes": jax.process_count()}

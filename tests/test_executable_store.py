@@ -51,7 +51,14 @@ def test_key_follows_identity_inputs_and_flags(tmp_path, monkeypatch):
     assert k != store.key({"method": "ar"}, (np.zeros((2, 3), np.int32), x[1]))
     assert k != store.key({"method": "ar"}, (x[0], {"q": x[1]["p"]}))
     monkeypatch.setenv("XLA_FLAGS", os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_fast_math=false")
-    assert k != store.key({"method": "ar"}, x)
+    k2 = store.key({"method": "ar"}, x)
+    assert k2 != k
+    results = tmp_path / "autotune.txt"  # a file an XLA flag names: its bytes count, not just its name
+    results.write_text("one")
+    monkeypatch.setenv("XLA_FLAGS", os.environ["XLA_FLAGS"] + f" --xla_gpu_load_autotune_results_from={results}")
+    k3 = store.key({"method": "ar"}, x)
+    results.write_text("two")
+    assert len({k2, k3, store.key({"method": "ar"}, x)}) == 3
 
 
 def test_file_digest_reads_contents_and_names(tmp_path):
