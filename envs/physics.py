@@ -51,15 +51,20 @@ class PhysicsConfig:
     clamp_aware_implicit: bool = False
     # MJX's sums over a body's children in a fixed order (no scatter-add atomics on a GPU).
     fixed_order_sums: bool = True
+    # > 0: MJX's constraint solver takes only this many contacts per physics step, the deepest
+    # (its max_contact_points); 0: every candidate contact slot (184), most of them inactive.
+    max_contacts: int = 0
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"unknown integrator {self.integrator!r}; valid: {', '.join(INTEGRATORS)}")
+        if self.max_contacts < 0:
+            raise ValueError(f"max_contacts must be 0 (every contact) or positive, got {self.max_contacts}")
 
 
 def mj_model(cfg: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
     """The scene compiled with these settings (cached per setting)."""
-    return scene.build_model(cfg.integrator, cfg.force_limits)
+    return scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts)
 
 
 def clamped(m: mjx.Model, force: jnp.ndarray) -> jnp.ndarray:

@@ -51,6 +51,9 @@ flags.DEFINE_bool("clamp_aware_implicit", physics.PhysicsConfig.clamp_aware_impl
 flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
                   "Physics: MJX's sums over a body's children in a fixed order, no scatter-add atomics on a GPU "
                   "(envs/physics.py); off: MJX's own segment_sum.")
+flags.DEFINE_integer("max_contacts", physics.PhysicsConfig.max_contacts,
+                     "Physics: MJX's constraint solver takes only this many contacts per physics step, the deepest "
+                     "(MJX's max_contact_points); 0: every candidate contact slot (184).", lower_bound=0)
 
 
 def main(argv):
@@ -71,7 +74,7 @@ def main(argv):
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
     env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit,
-                                        fixed_order_sums=FLAGS.fixed_order_sums)
+                                        fixed_order_sums=FLAGS.fixed_order_sums, max_contacts=FLAGS.max_contacts)
     if env_physics != physics.PhysicsConfig():  # recorded where it differs (older results files have no key)
         settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}

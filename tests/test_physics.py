@@ -91,3 +91,17 @@ def test_fixed_order_physics_equals_mjx_own_up_to_rounding(envs_and_state):
     np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
     assert not np.array_equal(a.data.qpos, np.asarray(state.data.qpos))  # the arm moved
+
+
+def test_max_contacts_caps_the_solver_rows_and_off_leaves_the_scene_as_it_was():
+    from mujoco import mjx  # noqa: PLC0415
+
+    from envs import scene  # noqa: PLC0415
+
+    assert scene.scene_mjcf(max_contacts=0) == scene.scene_mjcf()  # off: the same model, the same programs
+    full = mjx.make_data(physics.mj_model())
+    capped = mjx.make_data(physics.mj_model(physics.PhysicsConfig(max_contacts=32)))
+    assert capped._impl.contact.dist.shape == (32,) < full._impl.contact.dist.shape
+    assert capped._impl.efc_J.shape[0] < full._impl.efc_J.shape[0] / 4  # condim 3: 4 pyramid rows a contact
+    with pytest.raises(ValueError, match="max_contacts must be 0"):
+        physics.PhysicsConfig(max_contacts=-1)
