@@ -40,15 +40,18 @@ def _run_main(argv):
 def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, tmp_path):
     out = tmp_path / "ar.json"
     argv = ["--method=ar", f"--checkpoint={tiny_ckpt}", f"--tasks={TASKS}", "--suites=all", "--episodes=1",
-            "--num_envs=2", f"--out={out}"]
+            "--num_envs=2", f"--out={out}", f"--executable_store={tmp_path / 'store'}"]
     stdout = _run_main([*argv, "--compile_only"])  # compiles what the run would, runs and writes nothing
     assert "2 episodes pending, 2 envs: compiled in" in stdout and not out.exists()
     _run_main(argv)
     res = json.loads(out.read_text())
     assert res["settings"]["method"] == "ar" and res["settings"]["tasks"] == TASKS.split(",")
-    split = res["timing"]["compile_split"]
-    assert set(split) == {"trace", "lower", "xla"} and sum(split.values()) == pytest.approx(
-        res["timing"]["compile_seconds"], rel=1e-6)
+    split = res["timing"]["compile_split"]  # the program --compile_only compiled, loaded from the store
+    assert set(split) == {"trace", "lower", "xla", "store"} and split["trace"] == split["xla"] == 0.0
+    assert sum(split.values()) == pytest.approx(res["timing"]["compile_seconds"], rel=1e-6)
+    host = res["timing"]["host_split"]
+    assert set(host) == {"start", "setup", "other"} and sum(host.values()) == pytest.approx(
+        res["timing"]["host_seconds"], rel=1e-6)
     for task in TASKS.split(","):
         (ep,) = res["episodes"][task]
         assert isinstance(ep["success"], bool) and ep["steps"] > 0
