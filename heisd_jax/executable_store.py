@@ -47,6 +47,7 @@ import numpy as np
 
 FORMAT = 1  # bump when the entry layout changes
 SUFFIX = ".jaxexe"
+MAX_BYTES = 4 << 30  # the store's size, pruned least recently used first (an entry: 3-15 MB)
 _PACKAGES = ("envs", "heisd_jax")  # whose source makes the programs
 _DISTRIBUTIONS = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
 _JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
@@ -170,11 +171,35 @@ def input_signature(inputs: Any) -> Any:
 class ExecutableStore:
     """Compiled programs in `directory`, one file per key (written atomically). `identity`: what
     the caller knows makes its programs beyond what `BatchRollout` adds itself (a method's
-    settings, digests of the files it loaded)."""
+    settings, digests of the files it loaded). After a save the directory is kept within
+    `max_bytes`: the entries used longest ago (by modification time, which a load renews) go
+    first, the one just written never."""
 
-    def __init__(self, directory: str | os.PathLike, identity: Any = None):
+    def __init__(self, directory: str | os.PathLike, identity: Any = None, max_bytes: int = MAX_BYTES):
         self.directory = Path(directory).expanduser()
         self.identity = identity
+        self.max_bytes = max_bytes
+
+    def prune(self, keep: str | None = None) -> list[Path]:
+        """Deletes the least recently used entries until the store fits `max_bytes` (never
+        `keep`'s); returns the paths deleted."""
+        entries = []
+        for p in self.directory.glob(f"*{SUFFIX}"):
+            try:
+                st = p.stat()
+            except FileNotFoundError:  # pruned by another process meanwhile
+                continue
+            entries.append((st.st_mtime, st.st_size, p))
+        total, gone = sum(size for _, size, _ in entries), []
+        for _, size, p in sorted(entries, key=lambda e: e[0]):
+            if total <= self.max_bytes:
+                break
+            if keep is not None and p == self.path(keep):
+                continue
+            p.unlink(missing_ok=True)
+            total -= size
+            gone.append(p)
+        return gone
 
     def key(self, identity: Any, inputs: Any) -> str | None:
         """The key of the program that `identity` names, called with `inputs`; None when the
@@ -206,7 +231,9 @@ class ExecutableStore:
                 from jax._src.lax import linalg  # noqa: PLC0415
 
                 linalg.initialize_lapack()  # the pointers lowering would have set (module doc)
-            return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            compiled = serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
+            os.utime(self.path(key))  # used now: pruned last
+            return compiled
         except Exception as e:  # noqa: BLE001  (a stale or truncated entry is a miss, and is rewritten)
             log.warning("executable store: cannot load %s (%s: %s); compiling", self.path(key), type(e).__name__, e)
             return None
@@ -231,6 +258,7 @@ class ExecutableStore:
             except BaseException:
                 Path(tmp).unlink(missing_ok=True)
                 raise
+            self.prune(keep=key)
             return True
         except Exception as e:  # noqa: BLE001
             log.warning("executable store: not saved (%s: %s)", type(e).__name__, e)

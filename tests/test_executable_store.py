@@ -150,3 +150,21 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
     assert "loaded from the executable store" in runs[1][0]
     assert runs[1][1]["timing"]["compile_split"]["trace"] == 0.0
     assert runs[0][1]["episodes"] == runs[1][1]["episodes"]
+
+
+def test_the_store_keeps_within_its_size_by_dropping_the_least_recently_used(tmp_path):
+    x = np.ones((4, 3), np.float32)
+    compiled = xs.compile_storable(jax.jit(_program).trace(x).lower())
+    probe = xs.ExecutableStore(tmp_path / "probe")
+    probe.save("probe", compiled)
+    size = probe.path("probe").stat().st_size
+    store = xs.ExecutableStore(tmp_path / "store", max_bytes=int(2.5 * size))  # room for two entries
+    for i, key in enumerate(("a", "b")):
+        assert store.save(key, compiled)
+        os.utime(store.path(key), (1000.0 + i, 1000.0 + i))  # a older than b
+    assert store.load("a") is not None  # a load renews a: b is now the least recently used
+    assert store.save("c", compiled)
+    assert sorted(p.stem for p in store.directory.glob(f"*{xs.SUFFIX}")) == ["a", "c"]
+    tiny = xs.ExecutableStore(tmp_path / "store", max_bytes=1)  # even too small, the new entry stays
+    assert tiny.save("d", compiled)
+    assert [p.stem for p in tiny.directory.glob(f"*{xs.SUFFIX}")] == ["d"]
