@@ -192,7 +192,7 @@ def define_store_flag() -> None:
     the store it names."""
     flags.DEFINE_string("executable_store", str(cache_root() / "executables"),
                         "Directory of compiled rollouts keyed by the code, settings, checkpoints, versions and devices "
-                        "that make them: a warm run loads its program without tracing it (GPUs; docs/evaluator.md). "
+                        "that make them: a warm run loads its program without tracing it (docs/evaluator.md). "
                         "'' = off.")
 
 

@@ -39,8 +39,9 @@ flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pend
                   "for its slowest, results written after each batch.")
 cli.define_tail_flag()
 cli.define_store_flag()
-flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache, "
-                  "e.g. before a sweep), print where its compile time went, run nothing and write no results.")
+flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache "
+                  "and the executable store, e.g. before a sweep), print where its compile time went, run nothing and "
+                  "write no results.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings

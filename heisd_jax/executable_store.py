@@ -49,7 +49,7 @@ FORMAT = 1  # bump when the entry layout changes
 SUFFIX = ".jaxexe"
 MAX_BYTES = 4 << 30  # the store's size, pruned least recently used first (an entry: 3-15 MB)
 _PACKAGES = ("envs", "heisd_jax")  # whose source makes the programs
-_DISTRIBUTIONS = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "numpy")
+_DISTRIBUTIONS = ("mujoco", "mujoco-mjx", "numpy")  # beside jax, jaxlib and its plugins
 _JAX_SETTINGS = ("jax_enable_x64", "jax_default_matmul_precision", "jax_default_prng_impl",
                  "jax_threefry_partitionable", "jax_numpy_rank_promotion", "jax_numpy_dtype_promotion",
                  "jax_use_shardy_partitioner", "jax_enable_checks", "jax_debug_nans", "jax_disable_jit")
@@ -143,18 +143,27 @@ def source_digest() -> str:
     return h.hexdigest()
 
 
+@functools.cache
+def _versions() -> str:
+    """The installed jax, jaxlib, GPU plugins, mujoco, mujoco-mjx and numpy (fixed per process)."""
+    from envs import _xla  # noqa: PLC0415
+
+    others = []
+    for name in _DISTRIBUTIONS:
+        try:
+            others.append(f"{name}=={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:
+            others.append(f"{name}==none")
+    return ";".join([_xla.jax_versions(), *others])
+
+
 def environment() -> dict:
     """What outside the code changes a compiled program: versions, flags, JAX settings, devices."""
-    versions = {}
-    for dist in importlib.metadata.distributions():
-        name = (dist.metadata.get("Name") or "").lower()
-        if name in _DISTRIBUTIONS or name.startswith(("jax-cuda", "jax_cuda", "jax-rocm", "jax_rocm")):
-            versions[name] = dist.version
     devices = jax.devices()
     flags = os.environ.get("XLA_FLAGS", "")
     flag_files = {value: file_digest(value) for _, _, value in (f.partition("=") for f in flags.split())
                   if value and Path(value).is_file()}  # e.g. the autotuning results XLA loads
-    return {"versions": dict(sorted(versions.items())), "XLA_FLAGS": flags, "flag_files": flag_files,
+    return {"versions": _versions(), "XLA_FLAGS": flags, "flag_files": flag_files,
             "jax": {k: str(getattr(jax.config, k, None)) for k in _JAX_SETTINGS},
             "devices": [[d.platform, d.device_kind, d.id, d.process_index] for d in devices],
             "processes": jax.process_count()}
