@@ -70,11 +70,14 @@ def _look_at_xyaxes(pos: np.ndarray, target: np.ndarray) -> str:
 _MJCF_INTEGRATOR = {"implicitfast": "implicitfast", "euler": "Euler", "rk4": "RK4"}
 
 
-def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True, max_contacts: int = 0) -> str:
+def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True, max_contacts: int = 0,
+               max_geom_pairs: int = 0) -> str:
     """The full MJCF document of the scene. `integrator`: implicitfast, euler or rk4;
     `force_limits`: the servos' forcerange (False: unlimited torques); `max_contacts` > 0: MJX
-    keeps only that many contacts per step, the deepest (its `max_contact_points`; MuJoCo C
-    ignores it), so its constraint solver works on that many instead of every candidate's."""
+    keeps only that many contacts per step, the deepest (its `max_contact_points`), so its
+    constraint solver works on that many instead of every candidate's; `max_geom_pairs` > 0: MJX's
+    narrow phase tests only that many geom pairs per collision function (box-box, box-mesh), those
+    whose bounding spheres are nearest (its `max_geom_pairs`). MuJoCo C ignores both."""
     obj = f'contype="{robot.BIT_OBJECT}" conaffinity="{robot.BIT_OBJECT | robot.BIT_ENV | robot.BIT_GRIPPER}" condim="3" friction="1.2 0.005 0.0001" solref="0.01 1"'
     env = f'contype="{robot.BIT_ENV}" conaffinity="{robot.BIT_OBJECT}" condim="3" friction="1.0 0.005 0.0001" solref="0.01 1"'
     objects = []
@@ -93,8 +96,9 @@ def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True, max_
         f'<geom name="basket_wall{i}" type="box" size="{sx} {sy} {h}" pos="{px} {py} {h}" {env} rgba="0.55 0.35 0.2 1" material="white"/>'
         for i, (sx, sy, px, py) in enumerate([(b, w, w, 0), (b, w, -w, 0), (w, b, 0, w), (w, b, 0, -w)])
     )
-    custom = (f'\n  <custom>\n    <numeric name="max_contact_points" data="{max_contacts}"/>\n  </custom>'
-              if max_contacts > 0 else "")
+    numeric = "".join(f'\n    <numeric name="{name}" data="{n}"/>'
+                      for name, n in (("max_contact_points", max_contacts), ("max_geom_pairs", max_geom_pairs)) if n > 0)
+    custom = f"\n  <custom>{numeric}\n  </custom>" if numeric else ""
     return f"""<mujoco model="heisd_tabletop">
   <compiler angle="radian" autolimits="true"/>
   <option timestep="{TIMESTEP}" iterations="6" ls_iterations="8" integrator="{_MJCF_INTEGRATOR[integrator]}">
@@ -174,11 +178,12 @@ def scene_ids(m: mujoco.MjModel) -> SceneIds:
     )
 
 
-def build_model(integrator: str = "implicitfast", force_limits: bool = True, max_contacts: int = 0) -> mujoco.MjModel:
+def build_model(integrator: str = "implicitfast", force_limits: bool = True, max_contacts: int = 0,
+                max_geom_pairs: int = 0) -> mujoco.MjModel:
     """Compiles the scene (cached per setting: the model is immutable and shared)."""
-    return _compiled(integrator, force_limits, max_contacts)
+    return _compiled(integrator, force_limits, max_contacts, max_geom_pairs)
 
 
 @functools.lru_cache(maxsize=None)
-def _compiled(integrator: str, force_limits: bool, max_contacts: int) -> mujoco.MjModel:
-    return mujoco.MjModel.from_xml_string(scene_mjcf(integrator, force_limits, max_contacts))
+def _compiled(integrator: str, force_limits: bool, max_contacts: int, max_geom_pairs: int) -> mujoco.MjModel:
+    return mujoco.MjModel.from_xml_string(scene_mjcf(integrator, force_limits, max_contacts, max_geom_pairs))

@@ -55,6 +55,9 @@ flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
 flags.DEFINE_integer("max_contacts", physics.PhysicsConfig.max_contacts,
                      "Physics: MJX's constraint solver takes only this many contacts per physics step, the deepest "
                      "(MJX's max_contact_points); 0: every candidate contact slot (184).", lower_bound=0)
+flags.DEFINE_integer("max_geom_pairs", physics.PhysicsConfig.max_geom_pairs,
+                     "Physics: MJX's narrow phase tests only this many geom pairs per collision function, those whose "
+                     "bounding spheres are nearest (MJX's max_geom_pairs); 0: every pair.", lower_bound=0)
 
 
 def main(argv):
@@ -75,7 +78,8 @@ def main(argv):
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
     env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit,
-                                        fixed_order_sums=FLAGS.fixed_order_sums, max_contacts=FLAGS.max_contacts)
+                                        fixed_order_sums=FLAGS.fixed_order_sums, max_contacts=FLAGS.max_contacts,
+                                        max_geom_pairs=FLAGS.max_geom_pairs)
     if env_physics != physics.PhysicsConfig():  # recorded where it differs (older results files have no key)
         settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}

@@ -105,3 +105,19 @@ def test_max_contacts_caps_the_solver_rows_and_off_leaves_the_scene_as_it_was():
     assert capped._impl.efc_J.shape[0] < full._impl.efc_J.shape[0] / 4  # condim 3: 4 pyramid rows a contact
     with pytest.raises(ValueError, match="max_contacts must be 0"):
         physics.PhysicsConfig(max_contacts=-1)
+
+
+def test_max_geom_pairs_culls_the_narrow_phase_to_the_nearest_pairs():
+    from mujoco import mjx  # noqa: PLC0415
+    from mujoco.mjx._src import collision_driver  # noqa: PLC0415
+
+    from envs import scene  # noqa: PLC0415
+
+    assert scene.scene_mjcf(max_geom_pairs=0) == scene.scene_mjcf()
+    full = mjx.make_data(physics.mj_model())
+    culled = physics.mj_model(physics.PhysicsConfig(max_geom_pairs=8))
+    # box-box (19 pairs) and box-mesh (22) keep 8 each, 4 contacts a pair; the plane pairs are never culled.
+    assert collision_driver.make_condim(culled).shape == (184 - (19 - 8) * 4 - (22 - 8) * 4,)
+    assert mjx.make_data(culled)._impl.contact.dist.shape[0] < full._impl.contact.dist.shape[0]
+    with pytest.raises(ValueError, match="max_geom_pairs must be 0"):
+        physics.PhysicsConfig(max_geom_pairs=-1)
