@@ -27,6 +27,7 @@ identical episodes (docs/evaluator.md).
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import functools
 
@@ -57,6 +58,10 @@ class PhysicsConfig:
     # > 0: MJX's narrow phase tests only this many geom pairs per collision function (box-box: 19
     # pairs, box-mesh: 22), those whose bounding spheres are nearest (its max_geom_pairs); 0: all.
     max_geom_pairs: int = 0
+    # The constraint solver's iteration caps. Batched (vmap), MJX's solver loop runs until every
+    # env has converged, and its line search always runs all ls_iterations (a select, not a branch).
+    solver_iterations: int = scene.SOLVER_ITERATIONS
+    ls_iterations: int = scene.LS_ITERATIONS
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
@@ -65,11 +70,48 @@ class PhysicsConfig:
             raise ValueError(f"max_contacts must be 0 (every contact) or positive, got {self.max_contacts}")
         if self.max_geom_pairs < 0:
             raise ValueError(f"max_geom_pairs must be 0 (every pair) or positive, got {self.max_geom_pairs}")
+        for name in ("solver_iterations", "ls_iterations"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
 
+def parse(spec: str) -> PhysicsConfig:
+    """A PhysicsConfig from 'field=value,...' (e.g. 'max_contacts=32,ls_iterations=4'); ''
+    gives the defaults. Raises ValueError naming the valid fields for an unknown one."""
+    fields = {f.name: f for f in dataclasses.fields(PhysicsConfig)}
+    kwargs = {}
+    for item in filter(None, (s.strip() for s in spec.split(","))):
+        name, sep, value = item.partition("=")
+        name = name.strip()
+        if not sep or name not in fields:
+            raise ValueError(f"physics setting {item!r}: expected field=value with a field among {', '.join(fields)}")
+        default = getattr(PhysicsConfig, name)
+        try:
+            if isinstance(default, bool):
+                if value.strip().lower() not in ("true", "false", "1", "0"):
+                    raise ValueError(value)
+                kwargs[name] = value.strip().lower() in ("true", "1")
+            else:
+                kwargs[name] = type(default)(value.strip())
+        except ValueError:
+            raise ValueError(f"physics setting {item!r}: {name} takes a {type(default).__name__}") from None
+    return PhysicsConfig(**kwargs)
+
+
+def describe(cfg: PhysicsConfig) -> str:
+    """The settings that differ from the defaults, as `parse` reads them ('' for the defaults)."""
+    return ",".join(f"{f.name}={getattr(cfg, f.name)}" for f in dataclasses.fields(cfg)
+                    if getattr(cfg, f.name) != f.default)
+
+
+@functools.lru_cache(maxsize=None)
 def mj_model(cfg: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
-    """The scene compiled with these settings (cached per setting)."""
-    return scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
+    """The scene compiled with these settings (cached per setting: the model is shared)."""
+    model = scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
+    if (cfg.solver_iterations, cfg.ls_iterations) != (model.opt.iterations, model.opt.ls_iterations):
+        model = copy.copy(model)  # the scene's own model stays as compiled
+        model.opt.iterations, model.opt.ls_iterations = cfg.solver_iterations, cfg.ls_iterations
+    return model
 
 
 def clamped(m: mjx.Model, force: jnp.ndarray) -> jnp.ndarray:

@@ -25,6 +25,8 @@ from envs import robot
 TIMESTEP = 0.005  # physics step (s)
 N_SUBSTEPS = 10  # physics steps per control step: 20 Hz control
 CONTROL_DT = TIMESTEP * N_SUBSTEPS
+SOLVER_ITERATIONS = 6  # the constraint solver's (Newton) iterations per physics step, at most
+LS_ITERATIONS = 8  # its line search's iterations per solver iteration, at most
 
 BLOCK_HALF = 0.02  # half edge of the cubes (m)
 CYL_RADIUS, CYL_HALF_HEIGHT = 0.02, 0.03
@@ -101,7 +103,7 @@ def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True, max_
     custom = f"\n  <custom>{numeric}\n  </custom>" if numeric else ""
     return f"""<mujoco model="heisd_tabletop">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{TIMESTEP}" iterations="6" ls_iterations="8" integrator="{_MJCF_INTEGRATOR[integrator]}">
+  <option timestep="{TIMESTEP}" iterations="{SOLVER_ITERATIONS}" ls_iterations="{LS_ITERATIONS}" integrator="{_MJCF_INTEGRATOR[integrator]}">
     <flag eulerdamp="disable"/>
   </option>
   <default>

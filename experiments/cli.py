@@ -14,6 +14,7 @@ processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 from pathlib import Path
@@ -185,6 +186,31 @@ def define_tail_flag() -> None:
                          "go on in a batch of this size, so the queue's last, longest episodes do not pay a full "
                          "batch's step (a second copy of the step in the program: a longer compile; faster on a warm "
                          "compilation cache, docs/evaluator.md). 0: off.")
+
+
+def define_physics_flag() -> None:
+    """--physics (`envs.physics.PhysicsConfig` as 'field=value,...'), checked when flags parse."""
+    from envs import physics  # noqa: PLC0415
+
+    fields = ", ".join(f.name for f in dataclasses.fields(physics.PhysicsConfig))
+    flags.DEFINE_string("physics", "", f"The simulator's settings that differ from the defaults, as 'field=value,...' "
+                        f"(e.g. 'max_contacts=0' for every contact, 'clamp_aware_implicit=true'); fields: {fields} "
+                        f"(envs/physics.py). Recorded in the results.")
+
+    def check(value: str) -> bool:
+        try:
+            physics.parse(value)
+        except ValueError as e:
+            raise flags.ValidationError(str(e)) from None
+        return True
+    flags.register_validator("physics", check)
+
+
+def physics_config():
+    """The `envs.physics.PhysicsConfig` of --physics."""
+    from envs import physics  # noqa: PLC0415
+
+    return physics.parse(flags.FLAGS.physics)
 
 
 def define_store_flag() -> None:

@@ -20,7 +20,7 @@ T_START = time.perf_counter()  # the summary's wall time counts the imports belo
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
-from envs import physics, tasks as tasks_lib
+from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
@@ -46,18 +46,7 @@ flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
     flags.declare_key_flag(_name)
-flags.DEFINE_bool("clamp_aware_implicit", physics.PhysicsConfig.clamp_aware_implicit,
-                  "Physics: leave a servo clamped at its force limit out of implicitfast's damping, as MuJoCo C "
-                  "does (envs/physics.py); off: MJX's own rule, under which the shipped policies were trained.")
-flags.DEFINE_bool("fixed_order_sums", physics.PhysicsConfig.fixed_order_sums,
-                  "Physics: MJX's sums over a body's children in a fixed order, no scatter-add atomics on a GPU "
-                  "(envs/physics.py); off: MJX's own segment_sum.")
-flags.DEFINE_integer("max_contacts", physics.PhysicsConfig.max_contacts,
-                     "Physics: MJX's constraint solver takes only this many contacts per physics step, the deepest "
-                     "(MJX's max_contact_points); 0: every candidate contact slot (184).", lower_bound=0)
-flags.DEFINE_integer("max_geom_pairs", physics.PhysicsConfig.max_geom_pairs,
-                     "Physics: MJX's narrow phase tests only this many geom pairs per collision function, those whose "
-                     "bounding spheres are nearest (MJX's max_geom_pairs); 0: every pair.", lower_bound=0)
+cli.define_physics_flag()
 
 
 def main(argv):
@@ -77,11 +66,8 @@ def main(argv):
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
-    env_physics = physics.PhysicsConfig(clamp_aware_implicit=FLAGS.clamp_aware_implicit,
-                                        fixed_order_sums=FLAGS.fixed_order_sums, max_contacts=FLAGS.max_contacts,
-                                        max_geom_pairs=FLAGS.max_geom_pairs)
-    if env_physics != physics.PhysicsConfig():  # recorded where it differs (older results files have no key)
-        settings["physics"] = dataclasses.asdict(env_physics)
+    env_physics = cli.physics_config()
+    settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}
     for name in methods.get(FLAGS.method).loads:
         if name != "checkpoint":

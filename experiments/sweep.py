@@ -20,6 +20,7 @@ settings and batch size run one compiled program, traced and compiled once per s
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
@@ -47,6 +48,7 @@ flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 cli.define_tail_flag()
 cli.define_store_flag()
+cli.define_physics_flag()
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "results/sweep.jsonl", "Results file (JSON lines).")
 
@@ -79,7 +81,7 @@ class Programs:
         name, settings = cell["method"], dict(cell["settings"])
         key = (name, json.dumps(settings, sort_keys=True), cell["num_envs"])
         if key not in self.built:
-            env_cfg = methods.env_config(name, FLAGS.checkpoint)
+            env_cfg = dataclasses.replace(methods.env_config(name, FLAGS.checkpoint), physics=cli.physics_config())
             if env_cfg not in self.envs:
                 self.envs[env_cfg] = TabletopEnv(self.task_list, env_cfg)
             env = self.envs[env_cfg]
@@ -148,7 +150,8 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     per_suite = {s: t for s, t in per_suite.items() if t}
     sweep = {"episodes": episodes, "tasks": task_filter, "checkpoint": os.path.abspath(FLAGS.checkpoint),
-             "drafter": os.path.abspath(FLAGS.drafter), "datastore": os.path.abspath(FLAGS.datastore)}
+             "drafter": os.path.abspath(FLAGS.drafter), "datastore": os.path.abspath(FLAGS.datastore),
+             "physics": dataclasses.asdict(cli.physics_config())}
     try:
         store = results_io.SweepFile(FLAGS.out, sweep)
     except ValueError as e:

@@ -151,7 +151,7 @@ def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path
                                        "episodes": {"left_block_plate": [{"success": True}]}})
     before = out.read_text()
     r = subprocess.run([sys.executable, "-m", "experiments.evaluate", "--method=expert", "--tasks=left_block_plate",
-                        "--episodes=1", "--num_envs=1", "--clamp_aware_implicit", f"--out={out}"],
+                        "--episodes=1", "--num_envs=1", "--physics=clamp_aware_implicit=true", f"--out={out}"],
                        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
     assert out.read_text() == before

@@ -121,3 +121,25 @@ def test_max_geom_pairs_culls_the_narrow_phase_to_the_nearest_pairs():
     assert mjx.make_data(culled)._impl.contact.dist.shape[0] < full._impl.contact.dist.shape[0]
     with pytest.raises(ValueError, match="max_geom_pairs must be 0"):
         physics.PhysicsConfig(max_geom_pairs=-1)
+
+
+def test_physics_settings_parse_from_text_and_back():
+    cfg = physics.PhysicsConfig(max_contacts=32, fixed_order_sums=False, ls_iterations=4, integrator="rk4")
+    assert physics.parse(physics.describe(cfg)) == cfg
+    assert physics.parse("") == physics.PhysicsConfig() and physics.describe(physics.PhysicsConfig()) == ""
+    assert physics.parse(" max_contacts = 16 , clamp_aware_implicit=true") == physics.PhysicsConfig(
+        max_contacts=16, clamp_aware_implicit=True)
+    for bad, message in [("contacts=3", "a field among integrator"), ("max_contacts", "a field among"),
+                         ("force_limits=yes", "takes a bool"), ("integrator=leapfrog", "unknown integrator")]:
+        with pytest.raises(ValueError, match=message):
+            physics.parse(bad)
+
+
+def test_solver_iterations_set_the_models_options_and_leave_the_scene_as_compiled():
+    from envs import scene  # noqa: PLC0415
+
+    assert physics.mj_model() is scene.build_model()
+    m = physics.mj_model(physics.PhysicsConfig(solver_iterations=3, ls_iterations=4))
+    assert (m.opt.iterations, m.opt.ls_iterations) == (3, 4)
+    assert (scene.build_model().opt.iterations, scene.build_model().opt.ls_iterations) == (
+        scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS)
