@@ -38,10 +38,24 @@ def label(result: dict) -> str:
     """The method, the settings its command gave, and the commit it ran at."""
     s = dict(result.get("settings", {}))
     method = s.pop("method", "?")
-    shown = {k: v for k, v in s.items() if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter")}
+    shown = {k: v for k, v in s.items() if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter", "physics")}
+    physics = _physics_text(s.get("physics"))
+    if physics:
+        shown["physics"] = f"({physics})"
     settings = ",".join(f"{k}={Path(str(v)).name if k == 'datastore' else v}" for k, v in sorted(shown.items()))
     commit = result.get("commit")
     return method + (f":{settings}" if settings else "") + (f" @{commit[:7]}" if commit else "")
+
+
+def _physics_text(recorded: dict | None) -> str:
+    """The recorded physics' fields that differ from today's defaults ('' where none or none
+    recorded)."""
+    from envs import physics  # noqa: PLC0415
+
+    if not recorded:
+        return ""
+    defaults = physics.PhysicsConfig()
+    return ",".join(f"{k}={v}" for k, v in recorded.items() if getattr(defaults, k, None) != v)
 
 
 def compare(base: dict, other: dict, tolerance: float) -> dict:
