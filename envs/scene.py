@@ -26,7 +26,7 @@ TIMESTEP = 0.005  # physics step (s)
 N_SUBSTEPS = 10  # physics steps per control step: 20 Hz control
 CONTROL_DT = TIMESTEP * N_SUBSTEPS
 SOLVER_ITERATIONS = 6  # the constraint solver's (Newton) iterations per physics step, at most
-LS_ITERATIONS = 8  # its line search's iterations per solver iteration, at most
+LS_ITERATIONS = 4  # its line search's iterations per solver iteration, at most
 
 BLOCK_HALF = 0.02  # half edge of the cubes (m)
 CYL_RADIUS, CYL_HALF_HEIGHT = 0.02, 0.03

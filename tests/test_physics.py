@@ -98,9 +98,9 @@ def test_max_contacts_caps_the_solver_rows_and_off_leaves_the_scene_as_it_was():
 
     from envs import scene  # noqa: PLC0415
 
-    assert scene.scene_mjcf(max_contacts=0) == scene.scene_mjcf()  # off: the same model, the same programs
-    full = mjx.make_data(physics.mj_model())
-    capped = mjx.make_data(physics.mj_model(physics.PhysicsConfig(max_contacts=32)))
+    assert scene.scene_mjcf(max_contacts=0) == scene.scene_mjcf()  # off: no MJX setting in the MJCF
+    full = mjx.make_data(physics.mj_model(physics.PhysicsConfig(max_contacts=0, max_geom_pairs=0)))
+    capped = mjx.make_data(physics.mj_model(physics.PhysicsConfig(max_contacts=32, max_geom_pairs=0)))
     assert capped._impl.contact.dist.shape == (32,) < full._impl.contact.dist.shape
     assert capped._impl.efc_J.shape[0] < full._impl.efc_J.shape[0] / 4  # condim 3: 4 pyramid rows a contact
     with pytest.raises(ValueError, match="max_contacts must be 0"):
@@ -114,8 +114,8 @@ def test_max_geom_pairs_culls_the_narrow_phase_to_the_nearest_pairs():
     from envs import scene  # noqa: PLC0415
 
     assert scene.scene_mjcf(max_geom_pairs=0) == scene.scene_mjcf()
-    full = mjx.make_data(physics.mj_model())
-    culled = physics.mj_model(physics.PhysicsConfig(max_geom_pairs=8))
+    full = mjx.make_data(physics.mj_model(physics.PhysicsConfig(max_contacts=0, max_geom_pairs=0)))
+    culled = physics.mj_model(physics.PhysicsConfig(max_contacts=0, max_geom_pairs=8))
     # box-box (19 pairs) and box-mesh (22) keep 8 each, 4 contacts a pair; the plane pairs are never culled.
     assert collision_driver.make_condim(culled).shape == (184 - (19 - 8) * 4 - (22 - 8) * 4,)
     assert mjx.make_data(culled)._impl.contact.dist.shape[0] < full._impl.contact.dist.shape[0]
@@ -124,7 +124,7 @@ def test_max_geom_pairs_culls_the_narrow_phase_to_the_nearest_pairs():
 
 
 def test_physics_settings_parse_from_text_and_back():
-    cfg = physics.PhysicsConfig(max_contacts=32, fixed_order_sums=False, ls_iterations=4, integrator="rk4")
+    cfg = physics.PhysicsConfig(max_contacts=0, fixed_order_sums=False, ls_iterations=6, integrator="rk4")
     assert physics.parse(physics.describe(cfg)) == cfg
     assert physics.parse("") == physics.PhysicsConfig() and physics.describe(physics.PhysicsConfig()) == ""
     assert physics.parse(" max_contacts = 16 , clamp_aware_implicit=true") == physics.PhysicsConfig(
@@ -138,8 +138,9 @@ def test_physics_settings_parse_from_text_and_back():
 def test_solver_iterations_set_the_models_options_and_leave_the_scene_as_compiled():
     from envs import scene  # noqa: PLC0415
 
-    assert physics.mj_model() is scene.build_model()
-    m = physics.mj_model(physics.PhysicsConfig(solver_iterations=3, ls_iterations=4))
-    assert (m.opt.iterations, m.opt.ls_iterations) == (3, 4)
+    cfg = physics.PhysicsConfig()
+    assert physics.mj_model() is scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
+    m = physics.mj_model(physics.PhysicsConfig(solver_iterations=3, ls_iterations=7))
+    assert (m.opt.iterations, m.opt.ls_iterations) == (3, 7)
     assert (scene.build_model().opt.iterations, scene.build_model().opt.ls_iterations) == (
         scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS)

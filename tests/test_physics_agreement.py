@@ -37,7 +37,8 @@ def test_clamp_aware_implicit_agrees_with_mujoco_c_through_clamped_steps(case):
 
 
 def test_physics_config_compiles_the_settings_into_the_scene():
-    assert physics.mj_model() is scene.build_model()  # the shipped default, one shared model
+    cfg = physics.PhysicsConfig()  # the shipped default, one shared model
+    assert physics.mj_model() is scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
     m = physics.mj_model(physics.PhysicsConfig(integrator="rk4", force_limits=False))
     assert m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4 and not m.actuator_forcelimited.any()
     assert scene.build_model().actuator_forcelimited.all()
