@@ -144,3 +144,13 @@ def test_solver_iterations_set_the_models_options_and_leave_the_scene_as_compile
     assert (m.opt.iterations, m.opt.ls_iterations) == (3, 7)
     assert (scene.build_model().opt.iterations, scene.build_model().opt.ls_iterations) == (
         scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS)
+
+
+def test_pair_ranks_order_pairs_by_bounding_sphere_gap_per_env():
+    from experiments.contact_pairs import pair_ranks  # noqa: PLC0415
+
+    rbound = np.array([0.1, 0.1, 0.5])
+    pairs = np.array([[0, 1], [0, 2], [1, 2]])
+    xpos = np.array([[[0, 0, 0], [1, 0, 0], [0, 2, 0]],  # gaps 0.8, 1.4, ~1.64
+                     [[0, 0, 0], [3, 0, 0], [0, 0.5, 0]]])  # gaps 2.8, -0.1, ~2.44
+    np.testing.assert_array_equal(pair_ranks(xpos, rbound, pairs), [[1, 2, 3], [3, 1, 2]])

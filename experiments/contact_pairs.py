@@ -1,0 +1,112 @@
+"""What `PhysicsConfig.max_geom_pairs` must keep: for each of MJX's collision functions (box-box,
+box-mesh, ...), how far down a touching geom pair ranks when the pairs are ordered as MJX's
+broad phase orders them, by the gap between their bounding spheres.
+
+  python -m experiments.contact_pairs --suites=all --episodes=4 --out=results/contact_pairs.json
+
+Runs the scripted expert on --episodes evaluation states of every task of --suites, every
+contact and every pair simulated (`max_contacts=0,max_geom_pairs=0`, the rest of the physics
+defaults), and after every control step ranks each collision function's pairs per env. A pair
+touches when one of its contact slots has a negative distance. `max_geom_pairs=N` keeps every
+touching pair of these episodes when N is at least the largest rank printed.
+"""
+
+from __future__ import annotations
+
+import json
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco.mjx._src import collision_driver
+
+from envs import expert, physics, tasks as tasks_lib
+from envs.env import EnvConfig, TabletopEnv
+from experiments import cli
+from heisd_jax import results_io
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("suites", "all", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
+flags.DEFINE_integer("episodes", 4, "Evaluation states per task.", lower_bound=1)
+flags.DEFINE_integer("max_steps", 420, "Control steps at most (every episode ends by the longest task's limit).",
+                     lower_bound=1)
+flags.DEFINE_string("out", "", "Optional JSON output path.")
+
+
+def _groups(m: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """Collision function name (e.g. 'box-mesh') -> its geom pairs [P, 2], as MJX groups them."""
+    out = {}
+    for key, pairs in collision_driver._geom_groups(m).items():
+        name = "-".join(mujoco.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in key.types)
+        out[name] = np.concatenate([out[name], np.asarray(pairs)[:, :2]]) if name in out else np.asarray(pairs)[:, :2]
+    return out
+
+
+def pair_ranks(xpos: np.ndarray, rbound: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """[B, P] 1-based rank of each pair within its env by bounding-sphere gap (MJX's order)."""
+    gap = np.linalg.norm(xpos[:, pairs[:, 1]] - xpos[:, pairs[:, 0]], axis=-1) - rbound[pairs].sum(-1)
+    ranks = np.empty(gap.shape, np.int64)
+    np.put_along_axis(ranks, np.argsort(gap, axis=1, kind="stable"), np.arange(1, gap.shape[1] + 1)[None], axis=1)
+    return ranks
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        task_list = tasks_lib.get_tasks(FLAGS.suites)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    cfg = physics.PhysicsConfig(max_contacts=0, max_geom_pairs=0)
+    env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
+    groups = _groups(env.mj_model)
+    n = len(task_list) * FLAGS.episodes
+    tids = np.arange(n) % len(task_list)
+    state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n) // len(task_list)),
+                                         jnp.asarray(tids, jnp.int32))
+    es = jax.vmap(lambda s: expert.init(s, env))(state)
+
+    @jax.jit
+    def step(state, es, key):
+        actions, es = jax.vmap(lambda s, e, k: expert.act(env, s, e, k))(state, es, jax.random.split(key, n))
+        return jax.vmap(env.step)(state, actions), es
+
+    # Contact slot -> (its pair's index within its group); the slots' pairs are fixed without culling.
+    state, es = step(state, es, jax.random.PRNGKey(0))
+    slot_geom = np.asarray(state.data._impl.contact.geom)[0]
+    slot_of = {name: [np.flatnonzero((slot_geom == p).all(-1)) for p in pairs] for name, pairs in groups.items()}
+    worst = {name: 0 for name in groups}
+    hist = {name: np.zeros(len(pairs) + 1, np.int64) for name, pairs in groups.items()}
+    rbound = env.mj_model.geom_rbound
+    key = jax.random.PRNGKey(1)
+    for t in range(FLAGS.max_steps):
+        live = ~np.asarray(state.done)
+        xpos = np.asarray(state.data.geom_xpos)
+        dist = np.asarray(state.data._impl.contact.dist)
+        for name, pairs in groups.items():
+            touching = np.stack([(dist[:, s] < 0).any(-1) for s in slot_of[name]], -1) & live[:, None]  # [B, P]
+            ranks = pair_ranks(xpos, rbound, pairs)[touching]
+            np.add.at(hist[name], ranks, 1)
+            worst[name] = max(worst[name], int(ranks.max(initial=0)))
+        if not live.any():
+            break
+        key, sub = jax.random.split(key)
+        state, es = step(state, es, sub)
+    success = float(np.asarray(state.success).mean())
+    print(f"{n} expert episodes ({FLAGS.episodes} per task), {t + 1} control steps, success {success:.3f}")
+    print(f"{'collision function':<20}{'pairs':>6}{'largest rank touching':>23}")
+    for name, pairs in groups.items():
+        print(f"{name:<20}{len(pairs):>6}{worst[name] or '-':>23}")
+    if FLAGS.out:
+        results_io.write_json_atomic(FLAGS.out, {
+            **results_io.provenance(cli.command_line()), "episodes": n, "success": success,
+            "groups": {name: {"pairs": len(pairs), "largest_touching_rank": worst[name],
+                              "touching_rank_counts": hist[name][1:].tolist()} for name, pairs in groups.items()}})
+
+
+if __name__ == "__main__":
+    cli.run(main)
