@@ -65,6 +65,10 @@ class PhysicsConfig:
     # env has converged, and its line search always runs all ls_iterations (a select, not a branch).
     solver_iterations: int = scene.SOLVER_ITERATIONS
     ls_iterations: int = scene.LS_ITERATIONS
+    # The solver's loop as a scan of solver_iterations steps, each env's update masked once it has
+    # converged (MJX's own stopping rule, so the same iterates), instead of MJX's while loop, whose
+    # condition a GPU reads back to the host every iteration and which XLA cannot fuse across.
+    static_solver_loop: bool = True
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
@@ -178,11 +182,39 @@ def poses(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
 
 
+def _static_while_loop(trip_count: int):
+    """`jax.lax.while_loop` as a scan of `trip_count` steps that stops updating once `cond_fun`
+    is false: the while loop's result wherever it would end within `trip_count` iterations."""
+    def while_loop(cond_fun, body_fun, init_val):
+        def one(val, _):
+            go = cond_fun(val)
+            return jax.tree.map(lambda new, old: jnp.where(go, new, old), body_fun(val), val), None
+        return jax.lax.scan(one, init_val, None, length=trip_count)[0]
+    return while_loop
+
+
+@contextlib.contextmanager
+def solver_loop(m: mjx.Model, cfg: PhysicsConfig = PhysicsConfig()):
+    """While a physics step is traced inside it (with `cfg.static_solver_loop`), the while loop
+    of MJX's constraint solver, the only one in a step (mujoco-mjx 3.17.0: `solver.solve`), runs
+    as `_static_while_loop(m.opt.iterations)`, which that loop's own cap already bounds."""
+    if not cfg.static_solver_loop:
+        yield
+        return
+    current = jax.lax.while_loop
+    jax.lax.while_loop = _static_while_loop(m.opt.iterations)
+    try:
+        yield
+    finally:
+        jax.lax.while_loop = current
+
+
 def step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> mjx.Data:
     """One physics step: `mjx.step`, or with `cfg.clamp_aware_implicit` under implicitfast,
     MJX's forward dynamics and implicit step with the clamped servos' velocity terms zeroed;
-    MJX's sums over a body's children in `cfg`'s order (`summation_order`)."""
-    with summation_order(cfg):
+    MJX's sums over a body's children in `cfg`'s order (`summation_order`), its solver's loop
+    as `solver_loop` makes it."""
+    with summation_order(cfg), solver_loop(m, cfg):
         return _step(m, d, cfg)
 
 

@@ -40,13 +40,17 @@ def test_summation_order_patches_only_static_ids_and_restores():
 
 
 def _scatter_adds(fn, *args) -> collections.Counter:
-    """Scatter-adds in fn's jaxpr (nested jaxprs included), by the innermost MJX source file
-    that made them ('' if none)."""
+    return _primitives("scatter-add", fn, *args)
+
+
+def _primitives(name: str, fn, *args) -> collections.Counter:
+    """Primitives `name` in fn's jaxpr (nested jaxprs included), by the innermost MJX source
+    file that made them ('' if none)."""
     out = collections.Counter()
 
     def walk(jaxpr):
         for e in jaxpr.eqns:
-            if e.primitive.name == "scatter-add":
+            if e.primitive.name == name:
                 tb = e.source_info.traceback
                 files = [f.file_name for f in (tb.frames if tb else []) if "mjx/_src/" in f.file_name]
                 out[files[0].split("mjx/_src/")[-1] if files else ""] += 1
@@ -79,14 +83,15 @@ def test_no_body_tree_scatter_add_left_in_the_env_step(envs_and_state):
     assert tree_sums(_scatter_adds(fixed.reset, jax.random.PRNGKey(0), jnp.int32(0))) == 0
 
 
+def _roll(env, state, actions):
+    return jax.jit(lambda s, a: jax.lax.scan(lambda s, u: (env.step(s, u), None), s, a)[0])(state, actions)
+
+
 def test_fixed_order_physics_equals_mjx_own_up_to_rounding(envs_and_state):
     fixed, atomic, state = envs_and_state
     actions = jnp.asarray(np.random.default_rng(1).uniform(-1, 1, (3, 7)), jnp.float32)
 
-    def roll(env):
-        return jax.jit(lambda s, a: jax.lax.scan(lambda s, u: (env.step(s, u), None), s, a)[0])(state, actions)
-
-    a, b = roll(fixed), roll(atomic)
+    a, b = _roll(fixed, state, actions), _roll(atomic, state, actions)
     # 30 physics steps; the sums' order differs from XLA's scatter by rounding (1.5e-8 measured).
     np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
@@ -154,3 +159,15 @@ def test_pair_ranks_order_pairs_by_bounding_sphere_gap_per_env():
     xpos = np.array([[[0, 0, 0], [1, 0, 0], [0, 2, 0]],  # gaps 0.8, 1.4, ~1.64
                      [[0, 0, 0], [3, 0, 0], [0, 0.5, 0]]])  # gaps 2.8, -0.1, ~2.44
     np.testing.assert_array_equal(pair_ranks(xpos, rbound, pairs), [[1, 2, 3], [3, 1, 2]])
+
+
+def test_static_solver_loop_leaves_no_while_loop_in_the_step_and_the_same_physics(envs_and_state):
+    fixed, _, state = envs_and_state
+    looped = TabletopEnv(fixed.tasks, EnvConfig(render=False, physics=physics.PhysicsConfig(static_solver_loop=False)))
+    action = jnp.full((7,), 0.3)
+    assert _primitives("while", looped.step, state, action) == {"solver.py": 1}  # MJX's solver loop
+    assert not _primitives("while", fixed.step, state, action)
+    actions = jnp.asarray(np.random.default_rng(2).uniform(-1, 1, (3, 7)), jnp.float32)
+    a, b = _roll(fixed, state, actions), _roll(looped, state, actions)
+    np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
