@@ -65,10 +65,12 @@ class PhysicsConfig:
     # env has converged, and its line search always runs all ls_iterations (a select, not a branch).
     solver_iterations: int = scene.SOLVER_ITERATIONS
     ls_iterations: int = scene.LS_ITERATIONS
-    # The solver's loop as a scan of solver_iterations steps, each env's update masked once it has
-    # converged (MJX's own stopping rule, so the same iterates), instead of MJX's while loop, whose
-    # condition a GPU reads back to the host every iteration and which XLA cannot fuse across.
-    static_solver_loop: bool = True
+    # True: the solver's loop as a scan of solver_iterations steps, each env's update masked once
+    # it has converged (MJX's own stopping rule, so the same iterates), instead of MJX's while
+    # loop, whose condition a GPU reads back to the host every iteration. It runs every iteration
+    # for every env: faster where the batch's solves take most of them (in grasps), slower where
+    # they end in one or two (docs/benchmark.md); so off.
+    static_solver_loop: bool = False
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:

@@ -8,7 +8,8 @@ Runs the scripted expert on --episodes evaluation states of every task of --suit
 contact and every pair simulated (`max_contacts=0,max_geom_pairs=0`, the rest of the physics
 defaults), and after every control step ranks each collision function's pairs per env. A pair
 touches when one of its contact slots has a negative distance. `max_geom_pairs=N` keeps every
-touching pair of these episodes when N is at least the largest rank printed.
+touching pair of these episodes when N is at least the largest rank printed; `max_contacts=N`
+keeps every active contact when N is at least the most active contacts of one env at one step.
 """
 
 from __future__ import annotations
@@ -82,11 +83,13 @@ def main(argv):
     worst = {name: 0 for name in groups}
     hist = {name: np.zeros(len(pairs) + 1, np.int64) for name, pairs in groups.items()}
     rbound = env.mj_model.geom_rbound
+    most_active = 0
     key = jax.random.PRNGKey(1)
     for t in range(FLAGS.max_steps):
         live = ~np.asarray(state.done)
         xpos = np.asarray(state.data.geom_xpos)
         dist = np.asarray(state.data._impl.contact.dist)
+        most_active = max(most_active, int(((dist < 0) & live[:, None]).sum(-1).max()))
         for name, pairs in groups.items():
             touching = np.stack([(dist[:, s] < 0).any(-1) for s in slot_of[name]], -1) & live[:, None]  # [B, P]
             ranks = pair_ranks(xpos, rbound, pairs)[touching]
@@ -97,13 +100,15 @@ def main(argv):
         key, sub = jax.random.split(key)
         state, es = step(state, es, sub)
     success = float(np.asarray(state.success).mean())
-    print(f"{n} expert episodes ({FLAGS.episodes} per task), {t + 1} control steps, success {success:.3f}")
+    print(f"{n} expert episodes ({FLAGS.episodes} per task), {t + 1} control steps, success {success:.3f}; "
+          f"most active contacts of one env at one step: {most_active}")
     print(f"{'collision function':<20}{'pairs':>6}{'largest rank touching':>23}")
     for name, pairs in groups.items():
         print(f"{name:<20}{len(pairs):>6}{worst[name] or '-':>23}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {
             **results_io.provenance(cli.command_line()), "episodes": n, "success": success,
+            "most_active_contacts": most_active,
             "groups": {name: {"pairs": len(pairs), "largest_touching_rank": worst[name],
                               "touching_rank_counts": hist[name][1:].tolist()} for name, pairs in groups.items()}})
 

@@ -162,12 +162,12 @@ def test_pair_ranks_order_pairs_by_bounding_sphere_gap_per_env():
 
 
 def test_static_solver_loop_leaves_no_while_loop_in_the_step_and_the_same_physics(envs_and_state):
-    fixed, _, state = envs_and_state
-    looped = TabletopEnv(fixed.tasks, EnvConfig(render=False, physics=physics.PhysicsConfig(static_solver_loop=False)))
+    looped, _, state = envs_and_state
+    static = TabletopEnv(looped.tasks, EnvConfig(render=False, physics=physics.PhysicsConfig(static_solver_loop=True)))
     action = jnp.full((7,), 0.3)
     assert _primitives("while", looped.step, state, action) == {"solver.py": 1}  # MJX's solver loop
-    assert not _primitives("while", fixed.step, state, action)
+    assert not _primitives("while", static.step, state, action)
     actions = jnp.asarray(np.random.default_rng(2).uniform(-1, 1, (3, 7)), jnp.float32)
-    a, b = _roll(fixed, state, actions), _roll(looped, state, actions)
+    a, b = _roll(static, state, actions), _roll(looped, state, actions)
     np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
