@@ -11,7 +11,7 @@ Every cell runs the batched evaluator on the suite's tasks and is appended to --
 the method's full settings, the git commit, the device and library versions) as soon as it
 finishes: rerunning the same command skips finished cells, and a partial last line left by
 a crash is cut off and its cell redone. A file from a sweep of other fixed settings
-(episodes, tasks, checkpoints) is refused, never overwritten. Seeds change only the keys
+(episodes, tasks, checkpoints, --physics) is refused, never overwritten. Seeds change only the keys
 handed to the policy: the initial states are the fixed evaluation ones. One env holds every
 task of the sweep and task ids and seeds are data, so the suites and seeds of one method,
 settings and batch size run one compiled program, traced and compiled once per sweep
