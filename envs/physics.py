@@ -54,8 +54,8 @@ class PhysicsConfig:
     fixed_order_sums: bool = True
     # > 0: MJX's constraint solver takes only this many contacts per physics step, the deepest
     # (its max_contact_points), instead of every candidate slot (184, most of them inactive:
-    # 745 constraint rows against 137 at 32); 0: every slot. The scene's active contacts stay
-    # within 32 (an AR evaluation of 2,000 episodes differs in 1 episode from one at 48).
+    # 745 constraint rows against 137 at 32); 0: every slot. The experts' episodes of every task
+    # never have more than 28 active contacts in one env (`experiments.contact_pairs`).
     max_contacts: int = 32
     # > 0: MJX's narrow phase tests only this many geom pairs per collision function (box-box: 19
     # pairs, box-mesh: 22), those whose bounding spheres are nearest (its max_geom_pairs); 0: all.
