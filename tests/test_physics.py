@@ -1,7 +1,9 @@
-"""MJX's sums over a body's children in a fixed order (envs/physics.py, `fixed_order_sums`):
-the same sums as `jax.ops.segment_sum`, no scatter-add with repeated indices left in the
-env's traced step (on a GPU such a scatter-add runs with atomics, in an order that changes
-from run to run), and on CPU the same physics up to float rounding."""
+"""The simulator's settings (envs/physics.py). MJX's sums over a body's children in a fixed
+order (`fixed_order_sums`): the same sums as `jax.ops.segment_sum`, no scatter-add with
+repeated indices left in the env's traced step (on a GPU such a scatter-add runs with atomics,
+in an order that changes from run to run), and on CPU the same physics up to float rounding.
+The static solver loop: no while loop left, the same physics. The contact caps, the solver's
+iteration caps and `--physics`' text form."""
 
 import collections
 
