@@ -113,6 +113,29 @@ def describe(cfg: PhysicsConfig) -> str:
                     if getattr(cfg, f.name) != f.default)
 
 
+def collision_groups(m: mujoco.MjModel) -> dict[str, np.ndarray]:
+    """MJX's collision functions on this model (e.g. 'box-mesh') -> their geom pairs [P, 2]: the
+    groups within which `max_geom_pairs` keeps the nearest pairs."""
+    from mujoco.mjx._src import collision_driver  # noqa: PLC0415
+
+    out = {}
+    for key, pairs in collision_driver._geom_groups(m).items():
+        name = "-".join(mujoco.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in key.types)
+        pairs = np.asarray(pairs)[:, :2]
+        out[name] = np.concatenate([out[name], pairs]) if name in out else pairs
+    return out
+
+
+def broad_phase_ranks(xpos: np.ndarray, rbound: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """[B, P] 1-based rank of each geom pair within its env by the gap between the pair's bounding
+    spheres (geom positions xpos [B, ngeom, 3], radii rbound [ngeom]): the order in which MJX's
+    `max_geom_pairs` keeps pairs."""
+    gap = np.linalg.norm(xpos[:, pairs[:, 1]] - xpos[:, pairs[:, 0]], axis=-1) - rbound[pairs].sum(-1)
+    ranks = np.empty(gap.shape, np.int64)
+    np.put_along_axis(ranks, np.argsort(gap, axis=1, kind="stable"), np.arange(1, gap.shape[1] + 1)[None], axis=1)
+    return ranks
+
+
 @functools.lru_cache(maxsize=None)
 def mj_model(cfg: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
     """The scene compiled with these settings (cached per setting: the model is shared)."""

@@ -14,16 +14,13 @@ keeps every active contact when N is at least the most active contacts of one en
 
 from __future__ import annotations
 
-import json
 
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
-from mujoco.mjx._src import collision_driver
 
 from envs import expert, physics, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
@@ -38,23 +35,6 @@ flags.DEFINE_integer("max_steps", 420, "Control steps at most (every episode end
 flags.DEFINE_string("out", "", "Optional JSON output path.")
 
 
-def _groups(m: mujoco.MjModel) -> dict[str, np.ndarray]:
-    """Collision function name (e.g. 'box-mesh') -> its geom pairs [P, 2], as MJX groups them."""
-    out = {}
-    for key, pairs in collision_driver._geom_groups(m).items():
-        name = "-".join(mujoco.mjtGeom(t).name.removeprefix("mjGEOM_").lower() for t in key.types)
-        out[name] = np.concatenate([out[name], np.asarray(pairs)[:, :2]]) if name in out else np.asarray(pairs)[:, :2]
-    return out
-
-
-def pair_ranks(xpos: np.ndarray, rbound: np.ndarray, pairs: np.ndarray) -> np.ndarray:
-    """[B, P] 1-based rank of each pair within its env by bounding-sphere gap (MJX's order)."""
-    gap = np.linalg.norm(xpos[:, pairs[:, 1]] - xpos[:, pairs[:, 0]], axis=-1) - rbound[pairs].sum(-1)
-    ranks = np.empty(gap.shape, np.int64)
-    np.put_along_axis(ranks, np.argsort(gap, axis=1, kind="stable"), np.arange(1, gap.shape[1] + 1)[None], axis=1)
-    return ranks
-
-
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -64,7 +44,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     cfg = physics.PhysicsConfig(max_contacts=0, max_geom_pairs=0)
     env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
-    groups = _groups(env.mj_model)
+    groups = physics.collision_groups(env.mj_model)
     n = len(task_list) * FLAGS.episodes
     tids = np.arange(n) % len(task_list)
     state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n) // len(task_list)),
@@ -92,7 +72,7 @@ def main(argv):
         most_active = max(most_active, int(((dist < 0) & live[:, None]).sum(-1).max()))
         for name, pairs in groups.items():
             touching = np.stack([(dist[:, s] < 0).any(-1) for s in slot_of[name]], -1) & live[:, None]  # [B, P]
-            ranks = pair_ranks(xpos, rbound, pairs)[touching]
+            ranks = physics.broad_phase_ranks(xpos, rbound, pairs)[touching]
             np.add.at(hist[name], ranks, 1)
             worst[name] = max(worst[name], int(ranks.max(initial=0)))
         if not live.any():

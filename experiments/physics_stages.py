@@ -13,7 +13,6 @@ env's control step (IK, 10 physics steps, observations) in each case.
 from __future__ import annotations
 
 import dataclasses
-import json
 import time
 
 from absl import app, flags, logging

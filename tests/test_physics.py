@@ -153,14 +153,15 @@ def test_solver_iterations_set_the_models_options_and_leave_the_scene_as_compile
         scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS)
 
 
-def test_pair_ranks_order_pairs_by_bounding_sphere_gap_per_env():
-    from experiments.contact_pairs import pair_ranks  # noqa: PLC0415
-
+def test_broad_phase_ranks_order_pairs_by_bounding_sphere_gap_per_env():
     rbound = np.array([0.1, 0.1, 0.5])
     pairs = np.array([[0, 1], [0, 2], [1, 2]])
     xpos = np.array([[[0, 0, 0], [1, 0, 0], [0, 2, 0]],  # gaps 0.8, 1.4, ~1.64
                      [[0, 0, 0], [3, 0, 0], [0, 0.5, 0]]])  # gaps 2.8, -0.1, ~2.44
-    np.testing.assert_array_equal(pair_ranks(xpos, rbound, pairs), [[1, 2, 3], [3, 1, 2]])
+    np.testing.assert_array_equal(physics.broad_phase_ranks(xpos, rbound, pairs), [[1, 2, 3], [3, 1, 2]])
+    groups = physics.collision_groups(physics.mj_model())
+    assert {k: len(v) for k, v in groups.items()} == {"plane-box": 2, "plane-mesh": 2, "box-box": 19, "box-mesh": 22,
+                                                       "mesh-mesh": 1}
 
 
 def test_static_solver_loop_leaves_no_while_loop_in_the_step_and_the_same_physics(envs_and_state):
