@@ -46,14 +46,14 @@ def main(argv):
     env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
     groups = physics.collision_groups(env.mj_model)
     n = len(task_list) * FLAGS.episodes
-    tids = np.arange(n) % len(task_list)
-    state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n) // len(task_list)),
-                                         jnp.asarray(tids, jnp.int32))
-    es = jax.vmap(lambda s: expert.init(s, env))(state)
+    tids, keys = env.cycling_eval_starts(n)
+    state = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids))
+    pol = expert.policy(env)
+    es = pol.init(pol.params, state)
 
     @jax.jit
     def step(state, es, key):
-        actions, es = jax.vmap(lambda s, e, k: expert.act(env, s, e, k))(state, es, jax.random.split(key, n))
+        actions, es, _ = pol.act(pol.params, state, es, jax.random.split(key, n))
         return jax.vmap(env.step)(state, actions), es
 
     # Contact slot -> (its pair's index within its group); the slots' pairs are fixed without culling.

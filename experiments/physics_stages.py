@@ -1,6 +1,6 @@
 """Where one MJX physics step's time goes on a batch: each stage of MJX's forward pass jitted
 alone and vmapped over --batch envs, timed on states the scripted expert reached after
---warmup control steps (mid-episode: objects grasped, contacts live).
+--warmup control steps of an evaluation rollout (mid-episode: objects grasped, contacts live).
 
   python -m experiments.physics_stages --batch=4096 [--physics=max_contacts=0]
 
@@ -20,10 +20,9 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
 import jax.numpy as jnp
-import numpy as np
 from mujoco.mjx._src import collision_driver, constraint, forward, smooth, solver
 
-from envs import expert, physics, tasks as tasks_lib
+from envs import expert, physics, rollout, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
 from heisd_jax import results_io
@@ -42,20 +41,8 @@ def main(argv):
     cfg, n = cli.physics_config(), FLAGS.batch
     env = TabletopEnv(tasks_lib.get_tasks("all"), EnvConfig(render=False, physics=cfg))
     m = env.model
-    tids = np.arange(n) % len(env.tasks)
-    state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n) // len(env.tasks)),
-                                         jnp.asarray(tids, jnp.int32))
-
-    @jax.jit
-    def run_expert(state, key):
-        def body(carry, k):
-            s, e = carry
-            a, e = jax.vmap(lambda s, e, k: expert.act(env, s, e, k))(s, e, jax.random.split(k, n))
-            return (jax.vmap(env.step)(s, a), e), None
-        es = jax.vmap(lambda s: expert.init(s, env))(state)
-        return jax.lax.scan(body, (state, es), jax.random.split(key, FLAGS.warmup))[0][0]
-
-    state = run_expert(state, jax.random.PRNGKey(0))
+    tids, keys = env.cycling_eval_starts(n)
+    state = jax.jit(lambda k, t: rollout.run_episodes(env, expert.policy(env), k, t, FLAGS.warmup)[0])(keys, tids)
     rows = []
 
     def timed(name, fn, x, step_cfg=cfg):
