@@ -41,6 +41,7 @@ from mujoco.mjx._src import forward as mjx_forward  # MJX's own implicitfast int
 from envs import scene
 
 INTEGRATORS = ("implicitfast", "euler", "rk4")
+SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}  # those MJX runs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,6 +66,11 @@ class PhysicsConfig:
     # env has converged, and its line search always runs all ls_iterations (a select, not a branch).
     solver_iterations: int = scene.SOLVER_ITERATIONS
     ls_iterations: int = scene.LS_ITERATIONS
+    # The constraint solver (one of SOLVERS): Newton factors an nv x nv Hessian each iteration;
+    # CG (Polak-Ribiere) does not, and takes more iterations to converge.
+    solver: str = "newton"
+    # The solver stops once its cost's improvement or gradient (scaled) falls below this.
+    tolerance: float = scene.SOLVER_TOLERANCE
     # True: the solver's loop as a scan of solver_iterations steps, each env's update masked once
     # it has converged (MJX's own stopping rule, so the same iterates), instead of MJX's while
     # loop, whose condition a GPU reads back to the host every iteration. It runs every iteration
@@ -75,6 +81,10 @@ class PhysicsConfig:
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"unknown integrator {self.integrator!r}; valid: {', '.join(INTEGRATORS)}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"unknown solver {self.solver!r}; valid: {', '.join(SOLVERS)}")
+        if not self.tolerance >= 0:
+            raise ValueError(f"tolerance must be >= 0, got {self.tolerance}")
         if self.max_contacts < 0:
             raise ValueError(f"max_contacts must be 0 (every contact) or positive, got {self.max_contacts}")
         if self.max_geom_pairs < 0:
@@ -140,9 +150,12 @@ def broad_phase_ranks(xpos: np.ndarray, rbound: np.ndarray, pairs: np.ndarray) -
 def mj_model(cfg: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
     """The scene compiled with these settings (cached per setting: the model is shared)."""
     model = scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
-    if (cfg.solver_iterations, cfg.ls_iterations) != (model.opt.iterations, model.opt.ls_iterations):
+    options = {"iterations": cfg.solver_iterations, "ls_iterations": cfg.ls_iterations,
+               "solver": SOLVERS[cfg.solver], "tolerance": cfg.tolerance}
+    if any(getattr(model.opt, k) != v for k, v in options.items()):
         model = copy.copy(model)  # the scene's own model stays as compiled
-        model.opt.iterations, model.opt.ls_iterations = cfg.solver_iterations, cfg.ls_iterations
+        for k, v in options.items():
+            setattr(model.opt, k, v)
     return model
 
 

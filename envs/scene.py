@@ -27,6 +27,7 @@ N_SUBSTEPS = 10  # physics steps per control step: 20 Hz control
 CONTROL_DT = TIMESTEP * N_SUBSTEPS
 SOLVER_ITERATIONS = 6  # the constraint solver's (Newton) iterations per physics step, at most
 LS_ITERATIONS = 4  # its line search's iterations per solver iteration, at most
+SOLVER_TOLERANCE = 1e-8  # MuJoCo's default: the solver stops once its scaled improvement is below
 
 BLOCK_HALF = 0.02  # half edge of the cubes (m)
 CYL_RADIUS, CYL_HALF_HEIGHT = 0.02, 0.03
@@ -103,7 +104,7 @@ def scene_mjcf(integrator: str = "implicitfast", force_limits: bool = True, max_
     custom = f"\n  <custom>{numeric}\n  </custom>" if numeric else ""
     return f"""<mujoco model="heisd_tabletop">
   <compiler angle="radian" autolimits="true"/>
-  <option timestep="{TIMESTEP}" iterations="{SOLVER_ITERATIONS}" ls_iterations="{LS_ITERATIONS}" integrator="{_MJCF_INTEGRATOR[integrator]}">
+  <option timestep="{TIMESTEP}" iterations="{SOLVER_ITERATIONS}" ls_iterations="{LS_ITERATIONS}" tolerance="{SOLVER_TOLERANCE}" integrator="{_MJCF_INTEGRATOR[integrator]}">
     <flag eulerdamp="disable"/>
   </option>
   <default>
