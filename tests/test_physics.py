@@ -137,20 +137,24 @@ def test_physics_settings_parse_from_text_and_back():
     assert physics.parse(" max_contacts = 16 , clamp_aware_implicit=true") == physics.PhysicsConfig(
         max_contacts=16, clamp_aware_implicit=True)
     for bad, message in [("contacts=3", "a field among integrator"), ("max_contacts", "a field among"),
-                         ("force_limits=yes", "takes a bool"), ("integrator=leapfrog", "unknown integrator")]:
+                         ("force_limits=yes", "takes a bool"), ("integrator=leapfrog", "unknown integrator"),
+                         ("solver=pgs", "valid: newton, cg"), ("tolerance=-1", "tolerance must be >= 0")]:
         with pytest.raises(ValueError, match=message):
             physics.parse(bad)
 
 
-def test_solver_iterations_set_the_models_options_and_leave_the_scene_as_compiled():
+def test_solver_settings_set_the_models_options_and_leave_the_scene_as_compiled():
+    import mujoco  # noqa: PLC0415
     from envs import scene  # noqa: PLC0415
 
     cfg = physics.PhysicsConfig()
     assert physics.mj_model() is scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
-    m = physics.mj_model(physics.PhysicsConfig(solver_iterations=3, ls_iterations=7))
-    assert (m.opt.iterations, m.opt.ls_iterations) == (3, 7)
-    assert (scene.build_model().opt.iterations, scene.build_model().opt.ls_iterations) == (
-        scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS)
+    m = physics.mj_model(physics.PhysicsConfig(solver_iterations=3, ls_iterations=7, solver="cg", tolerance=1e-5))
+    assert (m.opt.iterations, m.opt.ls_iterations, m.opt.solver, m.opt.tolerance) == (
+        3, 7, mujoco.mjtSolver.mjSOL_CG, 1e-5)
+    o = scene.build_model().opt
+    assert (o.iterations, o.ls_iterations, o.solver, o.tolerance) == (
+        scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS, mujoco.mjtSolver.mjSOL_NEWTON, scene.SOLVER_TOLERANCE)
 
 
 def test_broad_phase_ranks_order_pairs_by_bounding_sphere_gap_per_env():
