@@ -5,12 +5,14 @@
 The baseline steps one environment at a time with `mujoco.mj_step` on the same MJCF, with
 the same control step (damped-least-squares IK in NumPy, ramped joint targets, 10 physics
 substeps), as LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows
-are timed with and without the ray-cast camera. Compile time is excluded (warm-up call). The
+are timed with and without the ray-cast camera, whose views are those the shipped target sees
+(`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded (warm-up call). The
 C loop runs --c_reps times; ratios take its fastest repetition.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -24,7 +26,7 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import physics, robot, scene
 from envs.env import EnvConfig, TabletopEnv
 from envs.ik import ControlConfig
-from heisd_jax import results_io
+from heisd_jax import methods, results_io
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -84,7 +86,7 @@ def _c_rate(m, ids, cfg, s0, acts) -> float:
 
 def mjx_rate(n_envs: int, render: bool, physics_cfg: physics.PhysicsConfig) -> tuple[float, float]:
     """(control steps per second summed over envs, compile seconds)."""
-    env = TabletopEnv(config=EnvConfig(render=render, physics=physics_cfg))
+    env = TabletopEnv(config=EnvConfig(camera=methods.env_config("ar").camera, render=render, physics=physics_cfg))
     tids = np.arange(n_envs) % len(env.tasks)
     state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n_envs) // len(env.tasks)),
                                          jnp.asarray(tids, jnp.int32))
@@ -117,6 +119,7 @@ def main(argv):
     except ValueError as e:
         raise app.UsageError(f"--physics: {e}") from e
     device = str(jax.devices()[0].device_kind)
+    cam = methods.env_config("ar").camera
     c_rates = c_loop(FLAGS.c_steps, FLAGS.c_reps)
     rows = [{"what": "mujoco_c_loop", "n_envs": 1, "ctrl_steps_per_s": max(c_rates), "repetitions": c_rates}]
     print(json.dumps(rows[-1]), flush=True)
@@ -128,8 +131,8 @@ def main(argv):
                              "ctrl_steps_per_s": rate, "compile_s": comp})
                 print(json.dumps(rows[-1]), flush=True)
     base = rows[0]["ctrl_steps_per_s"]
-    print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}; C loop repetitions: "
-          f"{', '.join(f'{r:.0f}' for r in c_rates)} control steps/s")
+    print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}; camera: {', '.join(cam.views)} "
+          f"({cam.height}x{cam.width}); C loop repetitions: {', '.join(f'{r:.0f}' for r in c_rates)} control steps/s")
     print(f"{'env':<28}{'envs':>6}{'ctrl steps/s':>15}{'x C loop':>10}  physics")
     for r in rows:
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
@@ -137,7 +140,7 @@ def main(argv):
               f"{r.get('physics') or ('defaults' if r['what'] == 'mjx' else '')}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
-                                                 "rows": rows})
+                                                 "camera": dataclasses.asdict(cam), "rows": rows})
 
 
 if __name__ == "__main__":
