@@ -69,7 +69,8 @@ class PhysicsConfig:
     # The constraint solver (one of SOLVERS): Newton factors an nv x nv Hessian each iteration;
     # CG (Polak-Ribiere) does not, and takes more iterations to converge.
     solver: str = "newton"
-    # The solver stops once its cost's improvement or gradient (scaled) falls below this.
+    # The solver stops once its cost's improvement or gradient (scaled) falls below this
+    # (scene.SOLVER_TOLERANCE says why 1e-5; 1e-8, MuJoCo's default, reproduces older results).
     tolerance: float = scene.SOLVER_TOLERANCE
     # True: the solver's loop as a scan of solver_iterations steps, each env's update masked once
     # it has converged (MJX's own stopping rule, so the same iterates), instead of MJX's while
