@@ -1,10 +1,9 @@
 """RGB cameras rendered inside JAX by ray casting, one ray per pixel.
 
-`cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with two
-changes, the same hits up to float rounding: a convex mesh is intersected as the polyhedron its
-face planes bound (a slab test per distinct plane) instead of triangle by triangle (the scene's
-cylinders, octagonal prisms of 28 triangles but 10 planes, were half the camera's cost), and
-a capsule's test is written on scalar components.
+`cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with one change:
+a convex mesh is intersected as the polyhedron its face planes bound (a slab test per distinct
+plane) instead of triangle by triangle. The hits are the same up to float rounding; the
+scene's cylinders (octagonal prisms, 28 triangles but 10 planes) were half the camera's cost.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
 from normals estimated on the depth map and a mild distance falloff. Geom colours are an
@@ -62,37 +61,8 @@ def pixel_rays(height: int, width: int, fovy_deg: float) -> np.ndarray:
 
 
 VISIBLE_GROUPS = (0, 1, 2)  # geom groups the cameras see (MuJoCo's default visible groups)
-
-
-def _ray_capsule(size: jnp.ndarray, pnt: jnp.ndarray, vec: jnp.ndarray) -> jnp.ndarray:
-    """MJX's ray-capsule distance (`mujoco/mjx/_src/ray.py: _ray_capsule`: the side, then the
-    half-sphere caps) written on scalar components: the same arithmetic, without the small
-    arrays MJX builds per ray, which kept XLA from fusing it (the capsules cost the camera more
-    than every other geom together)."""
-    r, h = size[0], size[1]
-    (px, py, pz), (vx, vy, vz) = pnt, vec
-
-    def roots(a, b, c):  # of a x^2 + 2 b x + c = 0, each inf when absent or behind the origin
-        det = b * b - a * c
-        sq = jnp.sqrt(jnp.maximum(det, 0))
-        x0, x1 = mjx_ray.math.safe_div(-b - sq, a), mjx_ray.math.safe_div(-b + sq, a)
-        bad = det < mujoco.mjMINVAL
-        return jnp.where(bad | (x0 < 0), jnp.inf, x0), jnp.where(bad | (x1 < 0), jnp.inf, x1)
-
-    x0, x1 = roots(vx * vx + vy * vy, vx * px + vy * py, px * px + py * py - r * r)
-    x = jnp.where(jnp.isinf(x0), x1, x0)
-    x = jnp.where(jnp.abs(pz + x * vz) <= h, x, jnp.inf)
-    vv, side = vx * vx + vy * vy + vz * vz, vx * px + vy * py
-    for sign in (1.0, -1.0):  # top cap (z >= h), then bottom (z <= -h)
-        dz = pz - sign * h
-        x0, x1 = roots(vv, side + vz * dz, px * px + py * py + dz * dz - r * r)
-        for xi in (x0, x1):
-            x = jnp.where((sign * (pz + xi * vz) >= h) & (xi < x), xi, x)
-    return x
-
-
 _PRIMITIVE_RAYS = {mujoco.mjtGeom.mjGEOM_PLANE: mjx_ray._ray_plane, mujoco.mjtGeom.mjGEOM_SPHERE: mjx_ray._ray_sphere,
-                   mujoco.mjtGeom.mjGEOM_CAPSULE: _ray_capsule,
+                   mujoco.mjtGeom.mjGEOM_CAPSULE: mjx_ray._ray_capsule,
                    mujoco.mjtGeom.mjGEOM_ELLIPSOID: mjx_ray._ray_ellipsoid, mujoco.mjtGeom.mjGEOM_BOX: mjx_ray._ray_box}
 
 

@@ -84,20 +84,6 @@ def _cube_mesh():
     return m.mesh_vert.copy(), m.mesh_face.copy()
 
 
-def test_capsule_ray_equals_mjxs():
-    from mujoco.mjx._src import ray as mjx_ray  # noqa: PLC0415
-
-    rng = np.random.default_rng(1)
-    size = jnp.asarray([0.05, 0.12, 0.0])
-    pnts = rng.uniform(-0.4, 0.4, (500, 3)).astype(np.float32)
-    vecs = (rng.uniform(-0.1, 0.1, (500, 3)) * [1, 1, 2] - pnts).astype(np.float32)  # aimed at the capsule
-    want = np.asarray(jax.vmap(lambda p, v: mjx_ray._ray_capsule(size, p, v))(pnts, vecs))
-    got = np.asarray(jax.vmap(lambda p, v: camera._ray_capsule(size, p, v))(pnts, vecs))
-    assert np.isfinite(want).sum() > 100 and np.isinf(want).sum() > 50
-    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
-    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-4)
-
-
 def test_convex_ray_equals_the_nearest_triangle_hit():
     from mujoco.mjx._src import ray as mjx_ray  # noqa: PLC0415
 
@@ -141,5 +127,4 @@ def test_cast_agrees_with_mjx_ray_on_every_pixel(rendered):
     meshes = np.flatnonzero(env.mj_model.geom_type == mujoco.mjtGeom.mjGEOM_MESH)
     assert np.isin(np.asarray(g0), meshes).sum() > 10  # the cylinders are in view
     np.testing.assert_array_equal(np.asarray(g1), np.asarray(g0))
-    # The same arithmetic in another order: float32 roots near a grazing hit differ in the 5th digit.
-    np.testing.assert_allclose(np.asarray(d1), np.asarray(d0), rtol=1e-4)
+    np.testing.assert_allclose(np.asarray(d1), np.asarray(d0), rtol=1e-5)
