@@ -111,9 +111,9 @@ def cast(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vec: jnp.ndarray) -> tuple
         if idx.size:
             dists.append(jax.vmap(fn)(m.geom_size[idx], local_pnt[idx], local_vec[idx]))
             ids.append(idx)
+    faceadr = np.append(m.mesh_faceadr, len(m.mesh_face))  # as MJX's own ray caster reads them
     for g in np.nonzero(visible & (m.geom_type == mujoco.mjtGeom.mjGEOM_MESH))[0]:
         mesh = m.geom_dataid[g]
-        faceadr = np.append(m.mesh_faceadr, len(m.mesh_face))  # as MJX's own ray caster reads them
         vert = np.asarray(m.mesh_vert)[m.mesh_vertadr[mesh]:m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]]
         normals, offsets = mesh_planes(vert, np.asarray(m.mesh_face)[faceadr[mesh]:faceadr[mesh + 1]])
         dists.append(_ray_convex(jnp.asarray(normals), jnp.asarray(offsets), local_pnt[g], local_vec[g])[None])

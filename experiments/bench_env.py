@@ -6,8 +6,8 @@ The baseline steps one environment at a time with `mujoco.mj_step` on the same M
 the same control step (damped-least-squares IK in NumPy, ramped joint targets, 10 physics
 substeps), as LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows
 are timed with and without the ray-cast camera, whose views are those the shipped target sees
-(`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded (warm-up call). The
-C loop runs --c_reps times; ratios take its fastest repetition.
+(`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded
+(warm-up call). The C loop runs --c_reps times; ratios take its fastest repetition.
 """
 
 from __future__ import annotations
