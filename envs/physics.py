@@ -221,6 +221,30 @@ def poses(m: mjx.Model, d: mjx.Data) -> mjx.Data:
     return mjx.camlight(m, mjx.com_pos(m, mjx.kinematics(m, d)))
 
 
+def solver_iterations(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> jnp.ndarray:
+    """[] int: the iterations MJX's constraint solver takes in the physics step from `d` (a state
+    between steps): the forward pass up to the solve, then the solve with its loop counted (MJX
+    keeps the count in its loop's state and drops it). Batched (vmap), each env's own count, not
+    the batch's trip count, which is their maximum."""
+    from mujoco.mjx._src import forward, solver  # noqa: PLC0415
+
+    counts, original = [], jax.lax.while_loop
+
+    def counted(cond_fun, body_fun, init_val):
+        out = original(cond_fun, body_fun, init_val)
+        counts.append(out.solver_niter)
+        return out
+
+    with summation_order(cfg):
+        d = forward.fwd_acceleration(m, forward.fwd_actuation(m, forward.fwd_velocity(m, forward.fwd_position(m, d))))
+        jax.lax.while_loop = counted
+        try:
+            solver.solve(m, d)
+        finally:
+            jax.lax.while_loop = original
+    return counts[0] if counts else jnp.ones((), jnp.int32)  # one iteration: MJX runs it without a loop
+
+
 def _static_while_loop(trip_count: int):
     """`jax.lax.while_loop` as a scan of `trip_count` steps that stops updating once `cond_fun`
     is false: the while loop's result wherever it would end within `trip_count` iterations."""

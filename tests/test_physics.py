@@ -178,3 +178,15 @@ def test_static_solver_loop_leaves_no_while_loop_in_the_step_and_the_same_physic
     a, b = _roll(static, state, actions), _roll(looped, state, actions)
     np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
+
+
+def test_solver_iterations_count_the_solver_loop_capped_and_cut_short_by_the_tolerance(envs_and_state):
+    env, _, state = envs_and_state
+    d = _roll(env, state, jnp.asarray(np.random.default_rng(4).uniform(-1, 1, (3, 7)), jnp.float32)).data
+    counts = {}
+    for tol, cap in [(0.0, 4), (1e-1, 4), (1e-5, 1)]:  # one iteration: MJX runs it without a loop
+        cfg = physics.PhysicsConfig(tolerance=tol, solver_iterations=cap)
+        m = TabletopEnv(env.tasks, EnvConfig(render=False, physics=cfg)).model
+        counts[tol] = int(jax.jit(lambda d: physics.solver_iterations(m, d, cfg))(d))
+    assert 0 <= counts[1e-1] < counts[0.0] <= 4  # the tolerance is what stops the loop here
+    assert counts[1e-5] == 1
