@@ -15,7 +15,8 @@ environment itself.
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, Callable, NamedTuple
+import itertools
+from typing import Any, Callable, Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -104,6 +105,23 @@ def run_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jn
 
     t, state, _, totals = jax.lax.while_loop(cond, body, (jnp.zeros((), jnp.int32), state, pstate, totals))
     return state, totals, t
+
+
+def host_loop(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray,
+              seed: int = 0) -> Iterator[EnvState]:
+    """The batch's state before each control step of the episodes `run_episodes` runs (keys
+    [B, 2], task_ids [B]), one jitted control step per iteration from the host: for analyses
+    that read every step there. Endless; finished envs freeze."""
+    state, pstate, act_keys = jax.jit(lambda k, t: _start(env, policy, k, t, seed))(keys, jnp.asarray(task_ids))
+
+    @jax.jit
+    def step(state, pstate, act_keys, t):
+        action, pstate, _ = _act(policy, state, pstate, act_keys, t)
+        return jax.vmap(env.step)(state, action), pstate
+
+    for t in itertools.count():
+        yield state
+        state, pstate = step(state, pstate, act_keys, jnp.int32(t))
 
 
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,

@@ -18,11 +18,9 @@ from __future__ import annotations
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from envs import expert, physics, tasks as tasks_lib
+from envs import expert, physics, rollout, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
 from heisd_jax import results_io
@@ -47,24 +45,16 @@ def main(argv):
     groups = physics.collision_groups(env.mj_model)
     n = len(task_list) * FLAGS.episodes
     tids, keys = env.cycling_eval_starts(n)
-    state = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids))
-    pol = expert.policy(env)
-    es = pol.init(pol.params, state)
-
-    @jax.jit
-    def step(state, es, key):
-        actions, es, _ = pol.act(pol.params, state, es, jax.random.split(key, n))
-        return jax.vmap(env.step)(state, actions), es
-
+    states = rollout.host_loop(env, expert.policy(env), keys, tids)
+    next(states)  # the reset state; contact slots hold their pairs from the first step on
+    state = next(states)
     # Contact slot -> (its pair's index within its group); the slots' pairs are fixed without culling.
-    state, es = step(state, es, jax.random.PRNGKey(0))
     slot_geom = np.asarray(state.data._impl.contact.geom)[0]
     slot_of = {name: [np.flatnonzero((slot_geom == p).all(-1)) for p in pairs] for name, pairs in groups.items()}
     worst = {name: 0 for name in groups}
     hist = {name: np.zeros(len(pairs) + 1, np.int64) for name, pairs in groups.items()}
     rbound = env.mj_model.geom_rbound
     most_active = 0
-    key = jax.random.PRNGKey(1)
     for t in range(FLAGS.max_steps):
         live = ~np.asarray(state.done)
         xpos = np.asarray(state.data.geom_xpos)
@@ -77,8 +67,7 @@ def main(argv):
             worst[name] = max(worst[name], int(ranks.max(initial=0)))
         if not live.any():
             break
-        key, sub = jax.random.split(key)
-        state, es = step(state, es, sub)
+        state = next(states)
     success = float(np.asarray(state.success).mean())
     print(f"{n} expert episodes ({FLAGS.episodes} per task), {t + 1} control steps, success {success:.3f}; "
           f"most active contacts of one env at one step: {most_active}")

@@ -19,10 +19,9 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from envs import expert, physics, tasks as tasks_lib
+from envs import expert, physics, rollout, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
 from heisd_jax import results_io
@@ -57,22 +56,12 @@ def main(argv):
     env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
     n = len(task_list) * FLAGS.episodes
     tids, keys = env.cycling_eval_starts(n)
-    state = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids))
-    pol = expert.policy(env)
-    es = pol.init(pol.params, state)
-
-    @jax.jit
-    def step(state, es, key):
-        actions, es, _ = pol.act(pol.params, state, es, jax.random.split(key, n))
-        return jax.vmap(env.step)(state, actions), es
-
-    samples, live, key = [], [], jax.random.PRNGKey(0)
-    for t in range(FLAGS.max_steps):
+    states = rollout.host_loop(env, expert.policy(env), keys, tids)
+    samples, live = [], []
+    for t, state in zip(range(FLAGS.max_steps), states):
         if t % FLAGS.every == 0:
             samples.append(state.data)
             live.append(~np.asarray(state.done))
-        key, sub = jax.random.split(key)
-        state, es = step(state, es, sub)
     live = np.stack(live)  # [T, B]
     rows = []
     print(f"{n} expert episodes, {live.sum()} live states ({len(samples)} sampled steps); physics: "

@@ -1,4 +1,5 @@
-"""Scripted experts in the batched evaluator: they solve sampled initial states of every suite."""
+"""Scripted experts in the batched evaluator: they solve sampled initial states of every suite;
+`rollout.host_loop` steps their episodes as `run_episodes` does."""
 
 import numpy as np
 import pytest
@@ -53,3 +54,17 @@ def test_expert_phase_names_name_each_phase_constant():
     phases = {n: getattr(expert, n.upper()) for n in expert.PHASE_NAMES}
     assert sorted(phases.values()) == list(range(len(expert.PHASE_NAMES)))  # one name per phase, no gap
     assert all(expert.PHASE_NAMES[v] == n for n, v in phases.items())
+
+
+@pytest.mark.slow  # two compiles of the expert's control step
+def test_host_loop_steps_the_episodes_run_episodes_runs():
+    import jax  # noqa: PLC0415
+    from envs import rollout  # noqa: PLC0415
+
+    env = TabletopEnv(tasks.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    tids, keys = env.cycling_eval_starts(2)
+    want, _, _ = jax.jit(lambda k, t: rollout.run_episodes(env, expert.policy(env), k, t, 3))(keys, tids)
+    states = rollout.host_loop(env, expert.policy(env), keys, tids)
+    got = [next(states) for _ in range(4)][-1]
+    np.testing.assert_array_equal(np.asarray(got.step), [3, 3])
+    np.testing.assert_allclose(np.asarray(got.data.qpos), np.asarray(want.data.qpos), rtol=0, atol=1e-6)
