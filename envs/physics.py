@@ -238,12 +238,21 @@ def solver_iterations(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsCon
 
     with summation_order(cfg):
         d = forward.fwd_acceleration(m, forward.fwd_actuation(m, forward.fwd_velocity(m, forward.fwd_position(m, d))))
-        jax.lax.while_loop = counted
-        try:
+        with _while_loop_as(counted):
             solver.solve(m, d)
-        finally:
-            jax.lax.while_loop = original
     return counts[0] if counts else jnp.ones((), jnp.int32)  # one iteration: MJX runs it without a loop
+
+
+@contextlib.contextmanager
+def _while_loop_as(while_loop):
+    """`jax.lax.while_loop` is `while_loop` while code is traced inside it (MJX's solver calls it
+    by that name), restored after."""
+    current = jax.lax.while_loop
+    jax.lax.while_loop = while_loop
+    try:
+        yield
+    finally:
+        jax.lax.while_loop = current
 
 
 def _static_while_loop(trip_count: int):
@@ -265,12 +274,8 @@ def solver_loop(m: mjx.Model, cfg: PhysicsConfig = PhysicsConfig()):
     if not cfg.static_solver_loop:
         yield
         return
-    current = jax.lax.while_loop
-    jax.lax.while_loop = _static_while_loop(m.opt.iterations)
-    try:
+    with _while_loop_as(_static_while_loop(m.opt.iterations)):
         yield
-    finally:
-        jax.lax.while_loop = current
 
 
 def step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> mjx.Data:

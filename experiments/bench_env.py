@@ -84,9 +84,9 @@ def _c_rate(m, ids, cfg, s0, acts) -> float:
     return len(acts) / (time.perf_counter() - t0)
 
 
-def mjx_rate(n_envs: int, render: bool, physics_cfg: physics.PhysicsConfig) -> tuple[float, float]:
+def mjx_rate(n_envs: int, env_cfg: EnvConfig) -> tuple[float, float]:
     """(control steps per second summed over envs, compile seconds)."""
-    env = TabletopEnv(config=EnvConfig(camera=methods.env_config("ar").camera, render=render, physics=physics_cfg))
+    env = TabletopEnv(config=env_cfg)
     tids = np.arange(n_envs) % len(env.tasks)
     state = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(tids, np.arange(n_envs) // len(env.tasks)),
                                          jnp.asarray(tids, jnp.int32))
@@ -126,7 +126,7 @@ def main(argv):
     for cfg in configs:
         for n in sizes:
             for render in {"both": [False, True], "on": [True], "off": [False]}[FLAGS.camera]:
-                rate, comp = mjx_rate(n, render, cfg)
+                rate, comp = mjx_rate(n, EnvConfig(camera=cam, render=render, physics=cfg))
                 rows.append({"what": "mjx", "render": render, "n_envs": n, "physics": physics.describe(cfg),
                              "ctrl_steps_per_s": rate, "compile_s": comp})
                 print(json.dumps(rows[-1]), flush=True)

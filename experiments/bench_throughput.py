@@ -121,10 +121,7 @@ def sequential(env: TabletopEnv, policy: rollout.Policy, n_episodes: int, compil
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    try:  # every bad value is reported before anything is compiled
-        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-    except ValueError as e:
-        raise app.UsageError(str(e)) from e
+    task_list = cli.task_list(FLAGS.suites, FLAGS.tasks)  # every bad value is reported before anything is compiled
     try:
         sizes = sharding.parse_batch_devices(FLAGS.batch_sizes, jax.local_device_count())
     except ValueError as e:

@@ -141,6 +141,17 @@ def run(main: Callable[[list[str]], object]) -> None:
     app.run(checked_main, flags_parser=_parse_flags)
 
 
+def task_list(suites: str, names: list[str] | None = None) -> list:
+    """`envs.tasks.get_tasks(suites, names or None)`, an unknown suite or task raised as the
+    `app.UsageError` that names the valid ones (call it from `main` before anything expensive)."""
+    from envs import tasks as tasks_lib  # noqa: PLC0415
+
+    try:
+        return tasks_lib.get_tasks(suites, names or None)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+
+
 def positive_int_list(flag_name: str) -> None:
     """Validates a DEFINE_list flag as comma-separated positive integers when flags parse."""
     flags.register_validator(

@@ -50,10 +50,7 @@ flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (onl
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    try:
-        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-    except ValueError as e:
-        raise app.UsageError(str(e)) from e
+    task_list = cli.task_list(FLAGS.suites, FLAGS.tasks)
     for name in ("episodes_per_task", "num_envs", "image_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")

@@ -15,7 +15,7 @@ keeps every active contact when N is at least the most active contacts of one en
 from __future__ import annotations
 
 
-from absl import app, flags, logging
+from absl import flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import numpy as np
@@ -36,10 +36,7 @@ flags.DEFINE_string("out", "", "Optional JSON output path.")
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    try:
-        task_list = tasks_lib.get_tasks(FLAGS.suites)
-    except ValueError as e:
-        raise app.UsageError(str(e)) from e
+    task_list = cli.task_list(FLAGS.suites)
     cfg = physics.PhysicsConfig(max_contacts=0, max_geom_pairs=0)
     env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
     groups = physics.collision_groups(env.mj_model)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from absl import app, flags, logging
+from absl import flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
@@ -48,10 +48,7 @@ def _is_tolerance(text: str) -> bool:
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
-    try:
-        task_list = tasks_lib.get_tasks(FLAGS.suites)
-    except ValueError as e:
-        raise app.UsageError(str(e)) from e
+    task_list = cli.task_list(FLAGS.suites)
     cfg = cli.physics_config()
     env = TabletopEnv(task_list, EnvConfig(render=False, physics=cfg))
     n = len(task_list) * FLAGS.episodes
