@@ -7,7 +7,8 @@ the same control step (damped-least-squares IK in NumPy, ramped joint targets, 1
 substeps), as LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows
 are timed with and without the ray-cast camera, whose views are those the shipped target sees
 (`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded
-(warm-up call). The C loop runs --c_reps times; ratios take its fastest repetition.
+(warm-up call). The C loop runs --c_reps times; ratios take its fastest repetition. A camera
+row records the camera's share of the control step: 1 - its steps/s / the physics-only row's.
 """
 
 from __future__ import annotations
@@ -131,12 +132,17 @@ def main(argv):
                              "ctrl_steps_per_s": rate, "compile_s": comp})
                 print(json.dumps(rows[-1]), flush=True)
     base = rows[0]["ctrl_steps_per_s"]
+    physics_only = {(r["n_envs"], r["physics"]): r["ctrl_steps_per_s"] for r in rows[1:] if not r["render"]}
+    for r in rows[1:]:  # the camera's share of a control step: 1 - (steps/s with it) / (steps/s without)
+        if r["render"] and (r["n_envs"], r["physics"]) in physics_only:
+            r["camera_share"] = 1.0 - r["ctrl_steps_per_s"] / physics_only[r["n_envs"], r["physics"]]
     print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}; camera: {', '.join(cam.views)} "
           f"({cam.height}x{cam.width}); C loop repetitions: {', '.join(f'{r:.0f}' for r in c_rates)} control steps/s")
-    print(f"{'env':<28}{'envs':>6}{'ctrl steps/s':>15}{'x C loop':>10}  physics")
+    print(f"{'env':<28}{'envs':>6}{'ctrl steps/s':>15}{'x C loop':>10}{'camera':>8}  physics")
     for r in rows:
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
-        print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{r['ctrl_steps_per_s'] / base:>10.2f}  "
+        share = f"{r['camera_share']:.0%}" if "camera_share" in r else ""
+        print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{r['ctrl_steps_per_s'] / base:>10.2f}{share:>8}  "
               f"{r.get('physics') or ('defaults' if r['what'] == 'mjx' else '')}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
