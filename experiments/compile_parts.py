@@ -65,8 +65,8 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     jax.config.update("jax_enable_compilation_cache", False)
-    env_cfg = dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint), physics=cli.physics_config())
     try:
+        env_cfg = dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint), physics=cli.physics_config())
         env = TabletopEnv(tasks_lib.get_tasks("all"), env_cfg)
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=FLAGS.num_envs)

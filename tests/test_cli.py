@@ -19,6 +19,7 @@ CASES = [
     ("evaluate", ["--physics=max_contact=32"], "with a field among integrator, force_limits"),
     ("sweep", ["--physics=ls_iterations=0"], "ls_iterations must be at least 1"),
     ("bench_env", ["--physics=;max_contacts=x"], "max_contacts takes a int"),
+    ("compile_parts", ["--method=ar", "--checkpoint=/nonexistent/vla"], "no policy checkpoint there"),
     ("bench_decode", ["--batch_sizes=1,x"], "positive integers"),
     ("solver_iterations", ["--tolerances=1e-5,x"], "takes non-negative numbers"),
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
