@@ -55,13 +55,23 @@ def seeded_keys(act_keys: jax.Array, seed: int | jax.Array) -> jax.Array:
     return folded if isinstance(seed, int) else jnp.where(seed == 0, act_keys, folded)
 
 
-def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int | jax.Array = 0,
-           reset: Callable | None = None):
-    """Reset envs and policy state for episodes (keys [B, 2], task_ids [B]); `reset` is the
-    batched env reset (default `vmap(env.reset)`)."""
+class QueueStarts(NamedTuple):
+    """What starts each episode of a queue: its initial env state and its policy key, [N, ...]."""
+    states: EnvState
+    act_keys: jax.Array
+
+
+def queue_starts(env: TabletopEnv, keys: jax.Array, task_ids: jnp.ndarray, seed: int | jax.Array = 0) -> QueueStarts:
+    """The initial states and policy keys of episodes (keys [N, 2] initial-state keys, task_ids
+    [N]), as `run_episodes` starts them. A function of its own so that `run_queue` can take
+    them from a program compiled apart (and beside) its loop's."""
     reset_keys, act_keys = jax.vmap(lambda k: jax.random.split(k))(keys).transpose(1, 0, 2)
-    act_keys = seeded_keys(act_keys, seed)
-    state = (reset or jax.vmap(env.reset))(reset_keys, task_ids)
+    return QueueStarts(jax.vmap(env.reset)(reset_keys, task_ids), seeded_keys(act_keys, seed))
+
+
+def _start(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, seed: int | jax.Array = 0):
+    """Reset envs and policy state for episodes (keys [B, 2], task_ids [B])."""
+    state, act_keys = queue_starts(env, keys, task_ids, seed)
     return state, policy.init(policy.params, state), act_keys
 
 
@@ -218,15 +228,19 @@ def replay_lanes(running: np.ndarray, envs: int, batch: int) -> tuple[np.ndarray
     return idx[..., 0], idx[..., 1]
 
 
-def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_valid: jnp.ndarray,
-              num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
+def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array | None, task_ids: jnp.ndarray | None,
+              n_valid: jnp.ndarray, num_slots: int, max_steps: int, seed: int = 0, refills_per_step: int | None = None,
               constrain: Callable[[Any, int], Any] = lambda tree, n: tree,
-              tail_slots: int = 0, split: bool = False) -> tuple[EpisodeResults, jnp.ndarray] | tuple:
+              tail_slots: int = 0, split: bool = False, starts: QueueStarts | None = None
+              ) -> tuple[EpisodeResults, jnp.ndarray] | tuple:
     """Runs the first `n_valid` episodes of a queue (`keys` [N, 2] initial-state keys and
     `task_ids` [N], N static) in `num_slots` envs: when an env's episode ends, its outcome
     is written to the episode's row and the slot takes the next pending episode, so no env
     waits for the slowest episode of a batch and the loop runs until the queue is empty and
-    every slot has finished.
+    every slot has finished. The episodes' starts are `queue_starts(env, keys, task_ids,
+    seed)`, computed once before the loop, or `starts` where given (then keys, task_ids and
+    seed are not read): the loop itself holds no env reset, and a caller can compile the
+    starts as a program of their own, beside the loop's.
 
     An episode's trajectory is the one `run_episodes` gives it (same reset, same policy
     keys), whichever slot and step it starts at, for policies whose rows do not interact.
@@ -234,9 +248,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     loop iteration, so a refill resets a few envs rather than the whole batch; a finished
     slot beyond that waits a step. The slots start empty and the same refill fills them
     before the first control step (num_slots / refills_per_step iterations that step
-    nothing): the program holds one env reset, not one for the first batch and one for the
-    refills (the reset is a large share of the compile). Batch-wide policy-state leaves
-    (not per slot) take the first refill's initial values and are kept after. `max_steps`
+    nothing). Batch-wide policy-state leaves (not per slot) take the first refill's initial
+    values and are kept after. `max_steps`
     bounds the loop's control steps (the whole queue), not an episode (each task's own
     limit ends its episodes). `constrain(tree, n)` applies a sharding constraint to the
     carry of n slots (identity on one device).
@@ -251,21 +264,18 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
     policy-state leaves are kept as they are. `split` (with `tail_slots`): return the loop's
     carry where the tail starts, for `run_queue_tail` in a program of its own. Returns the
     per-episode results and the number of control steps the loop ran."""
-    n_queue, s = keys.shape[0], num_slots
+    s = num_slots
     if not 0 <= tail_slots < s:
         raise ValueError(f"tail_slots must be 0 (off) or in 1..{s - 1} (below num_slots {s}), got {tail_slots}")
+    starts = queue_starts(env, keys, task_ids, seed) if starts is None else starts
+    n_queue = starts.act_keys.shape[0]
     r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
-    # The slots' template (overwritten, never stepped) takes its shapes from the refill's own
-    # jitted reset, whose trace JAX reuses for the refill's inputs of the same shapes: MJX's
-    # reset, a large share of the tracing time, is traced once.
-    reset = jax.jit(jax.vmap(env.reset))
-    some = jnp.zeros((r,), jnp.int32)  # r rows, as the refill takes them (same shapes and shardings)
-    state, _, _ = jax.eval_shape(lambda k, t: _start(env, policy, k, t, seed, reset), keys[some], task_ids[some])
-    state = jax.tree.map(lambda x: jnp.zeros((s,) + x.shape[1:], x.dtype), state)  # every leaf is per env
+    # The slots' template (overwritten, never stepped): every leaf is per env.
+    state = jax.tree.map(lambda x: jnp.zeros((s,) + x.shape[1:], x.dtype), starts.states)
     pstate = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
                           jax.eval_shape(lambda st: policy.init(policy.params, st), state))
     per_row = per_row_leaves(policy, state)
-    act_keys = jnp.zeros((s,) + keys.shape[1:], keys.dtype)
+    act_keys = jnp.zeros((s,) + starts.act_keys.shape[1:], starts.act_keys.dtype)
     slot_ep = jnp.full((s,), n_queue, jnp.int32)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
     results = jax.tree.map(lambda x: jnp.zeros((n_queue,), x.dtype), EpisodeResults.of(state, totals))
@@ -282,7 +292,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         take = (rows < s) & (eps < n_valid)
         rows = jnp.where(take | (blank < s), rows, s)
         idx = jnp.minimum(eps, n_queue - 1)
-        s2, p2, k2 = _start(env, policy, keys[idx], task_ids[idx], seed, reset)
+        s2, k2 = jax.tree.map(lambda x: x[idx], tuple(starts))
+        p2 = policy.init(policy.params, s2)
         s2 = s2.replace(done=s2.done | ~take)
         state = rows_set(rows, s2, state)
         pstate = rows_set(rows, p2, pstate, per_row, shared_too=blank == 0)

@@ -167,6 +167,8 @@ def _split_text(split: dict[str, float]) -> str:
                 (f" + store {split[f'{pre}store']:.1f}s (keying and saving)" if f"{pre}store" in split else ""))
 
     text = f"{split['total']:.1f}s: {stages('')}"
+    if "starts_trace" in split:
+        text += f"; the episodes' starts (env resets), their XLA beside the loop's: {stages('starts_')}"
     if "tail_trace" in split:
         text += (f"; the tail's program, beside the head's run: {stages('tail_')}, waited for "
                  f"{split.get('tail_wait', 0.0):.1f}s")

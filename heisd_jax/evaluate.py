@@ -72,7 +72,7 @@ class BatchRollout:
     program of its own, compiled in the background while the head runs, so that its compile
     adds to the wall time only where it outlasts the head."""
 
-    _tail = None
+    _tail = _starts = None
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
@@ -99,10 +99,15 @@ class BatchRollout:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
             constrain = sharding.slot_constraint(self.mesh)
 
-            def run(params, k, t, n_valid, seed_in=seed):  # with a tail: until the tail starts (its carry)
-                return rollout.run_queue(env, dataclasses.replace(policy, params=params), k, t, n_valid, num_envs,
-                                         bound, seed_in, constrain=constrain, tail_slots=tail_envs,
-                                         split=tail_envs > 0)
+            def starts(k, t, seed_in=seed):  # every queued episode's reset: a program of its own
+                return rollout.queue_starts(env, k, t, seed_in)
+
+            def run(params, st, n_valid):  # with a tail: until the tail starts (its carry)
+                return rollout.run_queue(env, dataclasses.replace(policy, params=params), None, None, n_valid,
+                                         num_envs, bound, constrain=constrain, tail_slots=tail_envs,
+                                         split=tail_envs > 0, starts=st)
+
+            self._starts = jax.jit(starts, out_shardings=sharding.replicated(self.mesh))
 
             if tail_envs:
                 def tail(params, carry, n_valid):
@@ -142,36 +147,70 @@ class BatchRollout:
         return self._compiled is not None
 
     def compile(self, inputs: tuple) -> None:
-        """Compiles (or loads) the program for `inputs`; with a tail, starts the tail's compile
-        in the background (`__call__` waits for it once the head has run)."""
+        """Compiles (or loads) the program for `inputs`; with a queue, the episodes' starts (a
+        batched env reset) are a second program: both are traced and lowered here (the physics
+        patches tracing runs under are process-wide), then XLA compiles the starts in the
+        background beside the loop (XLA's passes run a program on one thread). With a tail,
+        starts the tail's compile in the background (`__call__` waits for it once the head has
+        run)."""
         if self._compiled is not None:
             return
-        self._compiled, self.compile_split = self._compile(self._run, inputs, "head" if self._tail else "all")
-        self.compile_seconds = sum(self.compile_split.values())
+        part = "head" if self._tail else "all"
+        if self._starts is None:
+            self._compiled, self.compile_split = self._compile(self._run, inputs, part)
+            self.compile_seconds = sum(self.compile_split.values())
+        else:
+            t0 = time.perf_counter()
+            staged = self._lower(self._starts, self._starts_inputs(inputs), "starts", inputs)
+            starts_info = (staged[1] or staged[2]).out_info
+            loop = self._lower(self._run, (inputs[0], starts_info, inputs[3]), part, key_inputs=inputs)
+            future = _BACKGROUND.submit(self._finish, *staged)
+            self._compiled, self.compile_split = self._finish(*loop)
+            self._starts_compiled, split = future.result()
+            self.compile_split.update({f"starts_{k}": v for k, v in split.items()})
+            self.compile_seconds = time.perf_counter() - t0  # the two XLA compiles overlap
         if self._tail:
             self._tail_future = _BACKGROUND.submit(self._compile_tail, inputs)
+
+    @staticmethod
+    def _starts_inputs(inputs: tuple) -> tuple:
+        """The starts program's inputs (keys, task ids[, seed]) of the rollout's inputs."""
+        return inputs[1:3] + inputs[4:]
 
     def _compile(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
         """(compiled `fn` for `inputs`, its seconds by stage); loaded from or saved to the store
         under this rollout's identity, `part` and `key_inputs` (default: `inputs`)."""
-        t = [time.perf_counter()]
+        return self._finish(*self._lower(fn, inputs, part, key_inputs))
+
+    def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
+        """`fn`'s program for `inputs` loaded from the store, or traced and lowered: (store key
+        or None, the loaded executable or None, the lowered program or None, seconds by stage)."""
+        t0 = time.perf_counter()
         key = self.store.key({**self._identity, "part": part}, key_inputs or inputs) if self.store else None
         compiled = self.store.load(key) if key else None
         if compiled is not None:  # no tracing, lowering or XLA
-            return compiled, {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": time.perf_counter() - t[0]}
-        t.append(time.perf_counter())
+            return key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": time.perf_counter() - t0}
+        t1 = time.perf_counter()
         traced = fn.trace(*inputs)
-        t.append(time.perf_counter())
+        t2 = time.perf_counter()
         lowered = traced.lower()
-        t.append(time.perf_counter())
+        split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
+        if self.store:
+            split["store"] = t1 - t0
+        return key, None, lowered, split
+
+    def _finish(self, key, compiled, lowered, split: dict[str, float]):
+        """(`_lower`'s program compiled by XLA, or as loaded, and saved to the store; its seconds by stage)."""
+        if compiled is not None:
+            return compiled, split
+        t0 = time.perf_counter()
         compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
-        sharding.sync(f"heisd_jax.evaluate: rollout {part} compiled")  # several hosts: the slowest counts
-        t.append(time.perf_counter())
-        split = {k: b - a for k, a, b in zip(("trace", "lower", "xla"), t[1:], t[2:])}
+        sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
+        t1 = time.perf_counter()
+        split = {**split, "xla": t1 - t0}
         if key:
             self.store.save(key, compiled)
-        if self.store:
-            split["store"] = (t[1] - t[0]) + (time.perf_counter() - t[4] if key else 0.0)
+            split["store"] += time.perf_counter() - t1
         return compiled, split
 
     def _compile_tail(self, inputs: tuple):
@@ -188,9 +227,11 @@ class BatchRollout:
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
         self.compile(inputs)
+        run_inputs = inputs if self._starts is None else \
+            (inputs[0], self._starts_compiled(*self._starts_inputs(inputs)), inputs[3])
         if self._tail is None:
-            return sharding.fetch(self._compiled(*inputs))
-        carry = jax.block_until_ready(self._compiled(*inputs))
+            return sharding.fetch(self._compiled(*run_inputs))
+        carry = jax.block_until_ready(self._compiled(*run_inputs))
         t0 = time.perf_counter()
         waited = self._tail_compiled is None
         self.wait_compiled()

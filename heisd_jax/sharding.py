@@ -59,11 +59,16 @@ def shard_batch(mesh: Mesh, tree: Any) -> Any:
     return jax.device_put(tree, NamedSharding(mesh, P(AXIS)))
 
 
+def replicated(mesh: Mesh) -> NamedSharding:
+    """The sharding that puts a whole copy of an array on every device of `mesh`."""
+    return NamedSharding(mesh, P())
+
+
 def replicate(mesh: Mesh, tree: Any) -> Any:
     """A full copy of `tree` (parameters) on every device of the mesh."""
     if jax.process_count() > 1:  # committed single-device arrays cannot be sent to other hosts
         tree = jax.device_get(tree)
-    return jax.device_put(tree, NamedSharding(mesh, P()))
+    return jax.device_put(tree, replicated(mesh))
 
 
 def slot_constraint(mesh: Mesh):

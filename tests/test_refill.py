@@ -131,6 +131,22 @@ def test_a_tail_in_a_program_of_its_own_runs_as_in_one_program(case):
     jax.tree.map(np.testing.assert_array_equal, out, out2)
 
 
+def test_starts_from_a_program_of_their_own_run_as_in_one_program(case):
+    """The episodes' starts (`queue_starts`) compiled apart and handed to `run_queue` (as the
+    evaluator compiles them beside the loop) give what one program gives, seed included."""
+    keys, task_ids, *_ = case
+    n = jnp.int32(N_EPISODES)
+    one = jax.jit(lambda k, t, n: rollout.run_queue(_Env(), _policy(), k, t, n, 4, 1000, seed=5))
+    starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t, seed=5))
+    loop = jax.jit(lambda st, n: rollout.run_queue(_Env(), _policy(), None, None, n, 4, 1000, starts=st))
+    (out, steps), (out2, steps2) = one(keys, task_ids, n), loop(starts(keys, task_ids), n)
+    assert int(steps) == int(steps2)
+    jax.tree.map(np.testing.assert_array_equal, out, out2)
+    text = str(jax.make_jaxpr(lambda st, n: rollout.run_queue(_MarkedEnv(), _policy(), None, None, n, 4, 100,
+                                                              starts=st))(starts(keys, task_ids), n))
+    assert "population_count" not in text  # the loop's program holds no env reset
+
+
 def test_a_tail_not_below_the_slots_is_refused(case):
     keys, task_ids, *_ = case
     for tail in (-1, 4, 5):
@@ -167,7 +183,7 @@ class _MarkedEnv(_Env):
 
 
 def test_the_program_holds_one_env_reset(case):
-    """The first fill and every refill go through the same reset: one reset in the program
+    """The first fill and every refill take their states from one reset of the whole queue
     (the env reset is a large share of the compile), for a batch of slots as for one."""
     keys, task_ids, *_ = case
     for slots in (1, 4, 12):
