@@ -172,19 +172,19 @@ def test_summary_counts_per_action_and_per_episode():
 
 def test_suites_of_one_env_share_one_compiled_rollout():
     """Task ids and the seed are data: an env over two suites' tasks evaluates each suite
-    (`tasks`), under any seed, with one program, compiled for the first call and reused,
-    untraced, by the second."""
+    (`tasks`), under any seed, with one program (3 episodes in 2 slots: a queue, with its
+    starts' program), compiled for the first call and reused, untraced, by the second."""
     env = TabletopEnv(tasks_lib.get_tasks("spatial,object", ["left_block_plate", "pick_red_block"]),
                       EnvConfig(render=False))
     policy = methods.make_policy("expert", env)
-    cfg = ev.EvalConfig(episodes_per_task=2, num_envs=2)
+    cfg = ev.EvalConfig(episodes_per_task=3, num_envs=2)
     rollouts, timings = {}, []
     parts = [ev.evaluate(env, policy, cfg, tasks={name}, seed=seed, rollouts=rollouts,
                          on_batch=lambda r, t: timings.append(t))
              for name, seed in (("left_block_plate", 0), ("pick_red_block", 3))]  # the seed is an input too
     assert [list(p) for p in parts] == [["left_block_plate"], ["pick_red_block"]]
     assert len(rollouts) == 1 and timings[0]["compile_seconds"] > 0 and timings[1]["compile_seconds"] == 0.0
-    assert all(len(p[name]) == 2 and all(r is not None for r in p[name]) for p in parts for name in p)
+    assert all(len(p[name]) == 3 and all(r is not None for r in p[name]) for p in parts for name in p)
 
 
 def test_a_seed_given_as_data_folds_the_keys_as_a_static_one():
