@@ -63,8 +63,9 @@ class BatchRollout:
     """The jitted rollout of `queue` episodes in `num_envs` env slots, sharded over `devices`
     (default: all; the env slots are split, the policy's parameters replicated; one device: a
     plain jit). queue == num_envs: one static batch, run until every env is done; queue >
-    num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`).
-    Compiled ahead of time, so that calls time execution only. `seed=None`: the seed is an
+    num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`), the
+    queue's episode starts (`rollout.queue_starts`) a program of their own, compiled beside the
+    loop's. Compiled ahead of time, so that calls time execution only. `seed=None`: the seed is an
     input (`inputs(..., seed=)`), so one program serves every seed. `store`: compiled programs
     are loaded from it, and stored in it when compiled, where the backend supports it
     (`executable_store.supported`); the key adds this rollout's env, policy and sizes to the
