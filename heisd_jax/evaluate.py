@@ -126,7 +126,7 @@ class BatchRollout:
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
                           "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
                           "devices": [d.id for d in self.mesh.devices.flat]}
-        self._tail_compiled = self._tail_future = None
+        self._tail_compiled = self._tail_future = self._starts_compiled = None
         self.last_wait = 0.0  # seconds the last call waited for the tail's compile (counted as compile)
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
@@ -163,7 +163,7 @@ class BatchRollout:
         else:
             t0 = time.perf_counter()
             staged = self._lower(self._starts, self._starts_inputs(inputs), "starts", inputs)
-            starts_info = (staged[1] or staged[2]).out_info
+            starts_info = (staged[2] or staged[3]).out_info
             loop = self._lower(self._run, (inputs[0], starts_info, inputs[3]), part, key_inputs=inputs)
             future = _BACKGROUND.submit(self._finish, *staged)
             self._compiled, self.compile_split = self._finish(*loop)
@@ -184,13 +184,15 @@ class BatchRollout:
         return self._finish(*self._lower(fn, inputs, part, key_inputs))
 
     def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
-        """`fn`'s program for `inputs` loaded from the store, or traced and lowered: (store key
-        or None, the loaded executable or None, the lowered program or None, seconds by stage)."""
+        """`fn`'s program for `inputs` loaded from the store, or traced and lowered: (`part`,
+        store key or None, the loaded executable or None, the lowered program or None, seconds
+        by stage)."""
         t0 = time.perf_counter()
         key = self.store.key({**self._identity, "part": part}, key_inputs or inputs) if self.store else None
         compiled = self.store.load(key) if key else None
         if compiled is not None:  # no tracing, lowering or XLA
-            return key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": time.perf_counter() - t0}
+            return part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,
+                                               "store": time.perf_counter() - t0}
         t1 = time.perf_counter()
         traced = fn.trace(*inputs)
         t2 = time.perf_counter()
@@ -198,15 +200,15 @@ class BatchRollout:
         split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
         if self.store:
             split["store"] = t1 - t0
-        return key, None, lowered, split
+        return part, key, None, lowered, split
 
-    def _finish(self, key, compiled, lowered, split: dict[str, float]):
+    def _finish(self, part: str, key, compiled, lowered, split: dict[str, float]):
         """(`_lower`'s program compiled by XLA, or as loaded, and saved to the store; its seconds by stage)."""
         if compiled is not None:
             return compiled, split
         t0 = time.perf_counter()
         compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
-        sharding.sync("heisd_jax.evaluate: rollout compiled")  # several hosts: the slowest counts
+        sharding.sync(f"heisd_jax.evaluate: rollout {part} compiled")  # several hosts: the slowest counts
         t1 = time.perf_counter()
         split = {**split, "xla": t1 - t0}
         if key:
