@@ -134,13 +134,30 @@ def render_views(mj_model, m: mjx.Model, d: mjx.Data, geom_rgb: jnp.ndarray, cfg
         for v in cfg.views], axis=1)
 
 
+def view_hits(m: mjx.Model, d: mjx.Data, cam_id: int, height: int, width: int,
+              fovy_deg: float) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """(distance [H, W], geom id [H, W], ray direction [H, W, 3] in the world) of each pixel of
+    camera `cam_id`: the first visible geom its ray hits, (-1, -1) where none."""
+    dirs = jnp.asarray(pixel_rays(height, width, fovy_deg)) @ d.cam_xmat[cam_id].reshape(3, 3).T
+    dist, gid = jax.vmap(lambda v: cast(m, d, d.cam_xpos[cam_id], v))(dirs.reshape(-1, 3))
+    return dist.reshape(height, width), gid.reshape(height, width), dirs
+
+
+def view_geoms(mj_model, m: mjx.Model, d: mjx.Data, cfg: CameraConfig) -> jnp.ndarray:
+    """[n_views, ngeom] bool: the geoms that some pixel of each of `cfg.views` shows."""
+    rows = []
+    for v in cfg.views:
+        _, gid, _ = view_hits(m, d, mj_model.camera(v).id, cfg.height, cfg.width, float(mj_model.camera(v).fovy[0]))
+        gid = jnp.where(gid >= 0, gid, mj_model.ngeom).ravel()  # a miss: past the end, dropped
+        rows.append(jnp.zeros(mj_model.ngeom, bool).at[gid].set(True, mode="drop"))
+    return jnp.stack(rows)
+
+
 def render(m: mjx.Model, d: mjx.Data, cam_id: int, geom_rgb: jnp.ndarray, height: int, width: int,
            fovy_deg: float) -> jnp.ndarray:
     """RGB image [H, W, 3] uint8 from camera `cam_id`; `geom_rgb` [ngeom, 3] in [0, 1]."""
     origin = d.cam_xpos[cam_id]
-    dirs = jnp.asarray(pixel_rays(height, width, fovy_deg)) @ d.cam_xmat[cam_id].reshape(3, 3).T  # [H, W, 3] world
-    dist, gid = jax.vmap(lambda v: cast(m, d, origin, v))(dirs.reshape(-1, 3))
-    dist, gid = dist.reshape(height, width), gid.reshape(height, width)
+    dist, gid, dirs = view_hits(m, d, cam_id, height, width, fovy_deg)
     hit = gid >= 0
     dist = jnp.where(hit, dist, 10.0)
     pts = origin + dirs * dist[..., None]

@@ -128,3 +128,16 @@ def test_cast_agrees_with_mjx_ray_on_every_pixel(rendered):
     assert np.isin(np.asarray(g0), meshes).sum() > 10  # the cylinders are in view
     np.testing.assert_array_equal(np.asarray(g1), np.asarray(g0))
     np.testing.assert_allclose(np.asarray(d1), np.asarray(d0), rtol=1e-5)
+
+
+def test_view_geoms_lists_what_the_pixels_show_and_respects_transparency(rendered):
+    env, state, _ = rendered
+    mj, cfg = env.mj_model, env.config.camera
+    table, pad = (mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("table", "pad_left"))
+    seen = np.asarray(jax.jit(lambda d: camera.view_geoms(mj, env.model, d, cfg))(state.data))
+    assert seen.shape == (len(cfg.views), mj.ngeom) and seen[:, table].all() and seen[:, pad].any()
+    rgba = np.asarray(env.model.mat_rgba).copy()
+    rgba[mj.geom_matid[pad], 3] = 0.0  # the finger pads' material made transparent: never hit
+    m = env.model.replace(mat_rgba=rgba)  # the model is a constant of the program: cast reads its visibility
+    hidden = np.asarray(jax.jit(lambda d: camera.view_geoms(mj, m, d, cfg))(state.data))
+    assert not hidden[:, pad].any() and hidden[:, table].all()

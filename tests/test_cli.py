@@ -20,6 +20,7 @@ CASES = [
     ("sweep", ["--physics=ls_iterations=0"], "ls_iterations must be at least 1"),
     ("bench_env", ["--physics=;max_contacts=x"], "max_contacts takes a int"),
     ("compile_parts", ["--method=ar", "--checkpoint=/nonexistent/vla"], "no policy checkpoint there"),
+    ("camera_visibility", ["--suites=nope"], "unknown suite"),
     ("bench_decode", ["--batch_sizes=1,x"], "positive integers"),
     ("solver_iterations", ["--tolerances=1e-5,x"], "takes non-negative numbers"),
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
