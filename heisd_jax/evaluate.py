@@ -10,7 +10,7 @@ from __future__ import annotations
 import concurrent.futures
 import dataclasses
 import time
-from typing import Callable, Collection, Sequence
+from typing import Any, Callable, Collection, NamedTuple, Sequence
 
 import jax
 import numpy as np
@@ -57,6 +57,19 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
 
 
 _BACKGROUND = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="heisd-compile")
+
+
+class _Staged(NamedTuple):
+    """A program before XLA: loaded from the store (`compiled`) or traced and lowered (`lowered`)."""
+    part: str
+    key: str | None  # its store key; None: no store
+    compiled: Any
+    lowered: Any
+    split: dict[str, float]  # seconds by stage so far
+
+    @property
+    def out_info(self):
+        return (self.lowered if self.compiled is None else self.compiled).out_info
 
 
 class BatchRollout:
@@ -163,10 +176,9 @@ class BatchRollout:
         else:
             t0 = time.perf_counter()
             staged = self._lower(self._starts, self._starts_inputs(inputs), "starts", inputs)
-            starts_info = (staged[2] or staged[3]).out_info
-            loop = self._lower(self._run, (inputs[0], starts_info, inputs[3]), part, key_inputs=inputs)
-            future = _BACKGROUND.submit(self._finish, *staged)
-            self._compiled, self.compile_split = self._finish(*loop)
+            loop = self._lower(self._run, (inputs[0], staged.out_info, inputs[3]), part, key_inputs=inputs)
+            future = _BACKGROUND.submit(self._finish, staged)
+            self._compiled, self.compile_split = self._finish(loop)
             self._starts_compiled, split = future.result()
             self.compile_split.update({f"starts_{k}": v for k, v in split.items()})
             self.compile_seconds = time.perf_counter() - t0  # the two XLA compiles overlap
@@ -181,18 +193,16 @@ class BatchRollout:
     def _compile(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
         """(compiled `fn` for `inputs`, its seconds by stage); loaded from or saved to the store
         under this rollout's identity, `part` and `key_inputs` (default: `inputs`)."""
-        return self._finish(*self._lower(fn, inputs, part, key_inputs))
+        return self._finish(self._lower(fn, inputs, part, key_inputs))
 
-    def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
-        """`fn`'s program for `inputs` loaded from the store, or traced and lowered: (`part`,
-        store key or None, the loaded executable or None, the lowered program or None, seconds
-        by stage)."""
+    def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None) -> _Staged:
+        """`fn`'s program for `inputs` loaded from the store, or traced and lowered."""
         t0 = time.perf_counter()
         key = self.store.key({**self._identity, "part": part}, key_inputs or inputs) if self.store else None
         compiled = self.store.load(key) if key else None
         if compiled is not None:  # no tracing, lowering or XLA
-            return part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,
-                                               "store": time.perf_counter() - t0}
+            return _Staged(part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,
+                                                       "store": time.perf_counter() - t0})
         t1 = time.perf_counter()
         traced = fn.trace(*inputs)
         t2 = time.perf_counter()
@@ -200,10 +210,11 @@ class BatchRollout:
         split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
         if self.store:
             split["store"] = t1 - t0
-        return part, key, None, lowered, split
+        return _Staged(part, key, None, lowered, split)
 
-    def _finish(self, part: str, key, compiled, lowered, split: dict[str, float]):
-        """(`_lower`'s program compiled by XLA, or as loaded, and saved to the store; its seconds by stage)."""
+    def _finish(self, staged: _Staged):
+        """(`staged`'s program compiled by XLA, or as loaded, and saved to the store; its seconds by stage)."""
+        part, key, compiled, lowered, split = staged
         if compiled is not None:
             return compiled, split
         t0 = time.perf_counter()
