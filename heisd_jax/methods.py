@@ -77,7 +77,9 @@ class ARSettings:
     matmul_precision: str = _setting(vla.VLAConfig.matmul_precision, "float32 matrix products: 'float32' in full "
                                      "float32 (the same tokens at every batch size), 'default' at XLA's choice (TF32 "
                                      "tensor cores for some shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': "
-                                     "that tensor-core algorithm for every product, float32 accumulation.",
+                                     "that tensor-core algorithm for every product, float32 accumulation; 'tf32x3' "
+                                     "(GPUs), 'bf16x3', 'bf16x6', 'bf16x9' (GPUs): 3 to 9 such products per product, "
+                                     "near float32's rounding.",
                                      vla.MATMUL_PRECISIONS)
     unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
                             "unrolled: one straight-line program per pass instead of a loop the host drives layer by "

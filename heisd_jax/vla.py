@@ -104,11 +104,16 @@ class VLAConfig:
 # How float32 matrix products run, by name -> the setting of `jax.default_matmul_precision`
 # (None: XLA's default). "float32": full float32 on every backend. "default": XLA's choice,
 # which on recent NVIDIA GPUs runs some shapes on TF32 tensor cores and others in float32, so
-# one state's logits differ between batch sizes. "tf32" (GPUs only) and "bf16": one pinned
-# algorithm for every product (TF32, or bfloat16 inputs), float32 accumulation: tensor-core
-# speed with the same kind of kernel at every shape.
-_PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32"}
+# one state's logits differ between batch sizes. "tf32" and "bf16": one pinned algorithm for
+# every product (TF32, or bfloat16 inputs), float32 accumulation: tensor-core speed with the
+# same kind of kernel at every shape. "tf32x3", "bf16x3", "bf16x6", "bf16x9": each input split
+# into a sum of 2 or 3 such terms and 3, 6 or 9 tensor-core products of them summed, close to
+# float32's rounding at a fraction of its cost on GPUs (arXiv 1904.06376).
+_PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32",
+                       "tf32x3": "TF32_TF32_F32_X3", "bf16x3": "BF16_BF16_F32_X3", "bf16x6": "BF16_BF16_F32_X6",
+                       "bf16x9": "BF16_BF16_F32_X9"}
 MATMUL_PRECISIONS = tuple(_PRECISION_SETTINGS)
+_GPU_ONLY = ("tf32", "tf32x3", "bf16x9")  # XLA's CPU backend has no such algorithm
 
 
 def at_config_precision(fn):
@@ -118,9 +123,10 @@ def at_config_precision(fn):
     @functools.wraps(fn)
     def wrapped(params, cfg: VLAConfig, *args, **kwargs):
         setting = _PRECISION_SETTINGS[cfg.matmul_precision] if jnp.dtype(cfg.dtype) == jnp.float32 else None
-        if setting == "TF32_TF32_F32" and jax.default_backend() != "gpu":
-            raise ValueError(f'matmul_precision "tf32" needs a GPU (the backend is {jax.default_backend()}); '
-                             f"valid here: {', '.join(p for p in MATMUL_PRECISIONS if p != 'tf32')}")
+        if setting and cfg.matmul_precision in _GPU_ONLY and jax.default_backend() != "gpu":
+            raise ValueError(f'matmul_precision "{cfg.matmul_precision}" needs a GPU (the backend is '
+                             f"{jax.default_backend()}); valid here: "
+                             f"{', '.join(p for p in MATMUL_PRECISIONS if p not in _GPU_ONLY)}")
         with jax.default_matmul_precision(setting) if setting else contextlib.nullcontext():
             return fn(params, cfg, *args, **kwargs)
 

@@ -44,13 +44,20 @@ def test_bf16_pins_one_algorithm_for_every_product():
 
 
 @pytest.mark.skipif(jax.default_backend() == "gpu", reason="TF32 runs on GPUs")
-def test_tf32_without_a_gpu_is_refused_before_tracing():
-    with pytest.raises(ValueError, match='"tf32" needs a GPU.*valid here: float32, default, bf16'):
-        _products(dataclasses.replace(CFG, matmul_precision="tf32"))
+@pytest.mark.parametrize("name", ["tf32", "tf32x3", "bf16x9"])
+def test_gpu_only_algorithms_without_a_gpu_are_refused_before_tracing(name):
+    with pytest.raises(ValueError, match=f'"{name}" needs a GPU.*valid here: float32, default, bf16, bf16x3, bf16x6(\n|$)'):
+        _products(dataclasses.replace(CFG, matmul_precision=name))
+
+
+@pytest.mark.parametrize("name,algorithm", [("bf16x3", "BF16_BF16_F32_X3"), ("bf16x6", "BF16_BF16_F32_X6")])
+def test_split_bfloat16_algorithms_pin_every_product(name, algorithm):
+    found = _products(dataclasses.replace(CFG, matmul_precision=name), SPEC)
+    assert all(p.startswith(algorithm) or f"{algorithm}," in p or f"{algorithm})" in p for p in found), found
 
 
 def test_bad_precision_is_refused_with_the_valid_ones():
-    with pytest.raises(ValueError, match="float32, default, tf32, bf16"):
+    with pytest.raises(ValueError, match="float32, default, tf32, bf16, tf32x3, bf16x3, bf16x6, bf16x9"):
         dataclasses.replace(CFG, matmul_precision="fp8")
     with pytest.raises(ValueError, match="matmul_precision"):
         methods.check_settings("ar", {"matmul_precision": "fp8"})
