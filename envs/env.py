@@ -12,6 +12,7 @@ simulator blow-up ends that env's episode as failed without touching the others.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -181,14 +182,30 @@ class TabletopEnv:
         rank = jnp.cumsum(fixed < 0) - 1
         return jnp.where(fixed >= 0, fixed, order[jnp.clip(rank, 0, n - 1)]).astype(jnp.int32)
 
-    # ---- step ---------------------------------------------------------------------------
+    # ---- step -----------------------------------------------------------------------------
     def step(self, state: EnvState, action: jnp.ndarray) -> EnvState:
         """Advances one control step (scene.N_SUBSTEPS physics steps). Actions are clipped
-        to [-1, 1]; a non-finite action fails the episode."""
+        to [-1, 1]; a non-finite action fails the episode. The stages of `step_stages` in turn."""
         with physics.summation_order(self.config.physics):  # IK, physics, kinematics, Jacobians
-            return self._step(state, action)
+            return self._finish(state, self._physics(state, self._controls(state, action)))
 
-    def _step(self, state: EnvState, action: jnp.ndarray) -> EnvState:
+    @property
+    def step_stages(self) -> tuple[Callable[[EnvState, Any], Any], ...]:
+        """`step` as stages f(state, x) -> x', each of the previous one's output, the first
+        of the action, the last returning the new state: the servos' targets (IK), the
+        physics substeps, then the derived state and observation (camera). A rollout can
+        compile each as a program of its own (XLA compiles the programs in parallel, each
+        on one thread); `step` runs the same code in one program."""
+        def staged(fn):
+            def stage(state, x):
+                with physics.summation_order(self.config.physics):
+                    return fn(state, x)
+            stage.__name__ = fn.__name__.lstrip("_")  # controls, physics, finish
+            return stage
+        return tuple(staged(fn) for fn in (self._controls, self._physics, self._finish))
+
+    def _controls(self, state: EnvState, action: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+        """(the servos' targets [N_SUBSTEPS, nu] of each substep, whether the action was invalid)."""
         invalid = ~jnp.all(jnp.isfinite(action))
         action = jnp.where(invalid, 0.0, action)
         target = ik.action_to_ctrl(self.model, state.data, self.ids, action, self.config.control)
@@ -196,12 +213,21 @@ class TabletopEnv:
         # smooth reference, as a real arm's interpolating controller does); fingers step.
         start = state.data.ctrl
         frac = (jnp.arange(1, scene.N_SUBSTEPS + 1) / scene.N_SUBSTEPS)[:, None]
-        ramp = start + (target - start) * jnp.where(jnp.arange(target.shape[0]) < 7, frac, 1.0)  # [N, nu]
+        return start + (target - start) * jnp.where(jnp.arange(target.shape[0]) < 7, frac, 1.0), invalid
+
+    def _physics(self, state: EnvState, controls: tuple[jnp.ndarray, jnp.ndarray]) -> tuple[mjx.Data, jnp.ndarray]:
+        """(the physics state after the substeps, whether the action was invalid)."""
+        ramp, invalid = controls
 
         def substep(d, ctrl):
             return physics.step(self.model, d.replace(ctrl=ctrl), self.config.physics), None
 
         data, _ = jax.lax.scan(substep, state.data, ramp)
+        return data, invalid
+
+    def _finish(self, state: EnvState, stepped: tuple[mjx.Data, jnp.ndarray]) -> EnvState:
+        """The new state: derived quantities at the new positions, goals, the observation."""
+        data, invalid = stepped
         data = mjx.com_pos(self.model, mjx.kinematics(self.model, data))  # derived state at the new qpos
         unstable = ~(jnp.all(jnp.isfinite(data.qpos)) & jnp.all(jnp.isfinite(data.qvel)))
         # A blown-up simulation keeps its last finite state; the episode ends as failed.

@@ -240,7 +240,8 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array | None, task_ids
     every slot has finished. The episodes' starts are `queue_starts(env, keys, task_ids,
     seed)`, computed once before the loop, or `starts` where given (then keys, task_ids and
     seed are not read): the loop itself holds no env reset, and a caller can compile the
-    starts as a program of their own, beside the loop's.
+    starts as a program of their own, beside the loop's. `queue_loop` gives the same loop as
+    programs for a host to drive.
 
     An episode's trajectory is the one `run_episodes` gives it (same reset, same policy
     keys), whichever slot and step it starts at, for policies whose rows do not interact.
@@ -265,25 +266,142 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array | None, task_ids
     carry where the tail starts, for `run_queue_tail` in a program of its own. Returns the
     per-episode results and the number of control steps the loop ran."""
     s = num_slots
-    if not 0 <= tail_slots < s:
-        raise ValueError(f"tail_slots must be 0 (off) or in 1..{s - 1} (below num_slots {s}), got {tail_slots}")
+    _check_tail(s, tail_slots)
     starts = queue_starts(env, keys, task_ids, seed) if starts is None else starts
     n_queue = starts.act_keys.shape[0]
-    r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
-    # The slots' template (overwritten, never stepped): every leaf is per env.
+    n_valid = jnp.asarray(n_valid, jnp.int32)
+    refill, refill_due = _queue_refill(policy, starts, n_valid, s, refills_per_step)
+    step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue, tail_slots)
+
+    def body(c):
+        c = jax.lax.cond(refill_due(c), refill, lambda c: c, c)
+        c = jax.lax.cond(c[1] >= s, step, lambda c: c, c)  # control steps once every slot is set
+        return _constrain_carry(c, constrain, s)
+
+    c = jax.lax.while_loop(cond, body, _queue_carry(policy, starts, s, constrain))
+    if tail_slots == 0:
+        return c[-1], c[0]
+    if split:
+        return c
+    return run_queue_tail(env, policy, c, n_valid, max_steps, tail_slots, constrain)
+
+
+class QueueLoop(NamedTuple):
+    """`run_queue`'s loop as pure functions for a host to drive, each a program of its own
+    (XLA compiles them in parallel), the env's step split at its `step_stages`:
+
+        carry = init(starts)
+        repeat:  carry, x, stepping = head(params, carry, starts, n_valid)  # refill, act, stage 0
+                 x = stage(carry, x, stepping) for each middle stage          # e.g. the physics
+                 carry, alive = last(carry, x, stepping, n_valid)            # last stage, outcomes
+        until alive is False; then carry[-1] holds the results, carry[0] the control steps.
+
+    One round is one iteration of `run_queue`'s loop, the same code; a round after the loop's
+    end changes nothing, so a host may check `alive` a few rounds late (`drive_queue`). With
+    `tail_slots`, `alive` turns False where the tail starts, and the carry is `run_queue_tail`'s."""
+    init: Callable[[QueueStarts], tuple]
+    head: Callable[[Any, tuple, QueueStarts, jnp.ndarray], tuple]
+    stages: tuple[Callable[[tuple, Any, jnp.ndarray], Any], ...]
+    last: Callable[[tuple, Any, jnp.ndarray, jnp.ndarray], tuple]
+
+
+def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int, refills_per_step: int | None = None,
+               constrain: Callable[[Any, int], Any] = lambda tree, n: tree, tail_slots: int = 0) -> QueueLoop:
+    """`run_queue`'s loop (same arguments) as a `QueueLoop`, policy parameters an input of
+    `head`. The env's step splits at `env.step_stages` where it has them (else one stage,
+    `env.step`)."""
+    s = num_slots
+    _check_tail(s, tail_slots)
+    stages = getattr(env, "step_stages", (env.step,))
+    batched = [jax.vmap(f) for f in stages]
+
+    def skipped(fn, *args):  # zeros of fn's output: a round that does not step
+        return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(fn, *args))
+
+    def head(params, c, starts, n_valid):
+        pol = dataclasses.replace(policy, params=params)
+        n_queue = starts.act_keys.shape[0]
+        refill, refill_due = _queue_refill(pol, starts, n_valid, s, refills_per_step)
+        go = _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
+        c = jax.lax.cond(go & refill_due(c), refill, lambda c: c, c)
+        stepping = go & (c[1] >= s)
+
+        def act(c):
+            c, action = _queue_act(pol, c)
+            return c, batched[0](c[4], action)
+
+        action = jnp.zeros((s, 7), jnp.float32)
+        c, x = jax.lax.cond(stepping, act, lambda c: (c, skipped(batched[0], c[4], action)), c)
+        return _constrain_carry(c, constrain, s), constrain(x, s), stepping
+
+    def middle(fn):
+        def stage(c, x, stepping):
+            return constrain(jax.lax.cond(stepping, fn, lambda st, x: skipped(fn, st, x), c[4], x), s)
+        return stage
+
+    def last(c, x, stepping, n_valid):
+        n_queue = jax.tree.leaves(c[-1])[0].shape[0]
+        new_state = (lambda c, x: batched[-1](c[4], x)) if len(batched) > 1 else (lambda c, x: x)
+        c = jax.lax.cond(stepping, lambda c, x: _queue_record(n_queue, c, new_state(c, x)), lambda c, x: c, c, x)
+        return _constrain_carry(c, constrain, s), _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
+
+    return QueueLoop(init=lambda starts: _queue_carry(policy, starts, s, constrain), head=head,
+                     stages=tuple(middle(f) for f in batched[1:-1]), last=last)
+
+
+def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, check_every: int = 8) -> tuple:
+    """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
+    (or where its tail starts); returns the final carry. `alive` is read every `check_every`
+    rounds, one batch of rounds late, so the host queues the next rounds while the device runs."""
+    c, seen = loop.init(starts), None
+    while True:
+        for _ in range(check_every):
+            c, x, stepping = loop.head(params, c, starts, n_valid)
+            for stage in loop.stages:
+                x = stage(c, x, stepping)
+            c, alive = loop.last(c, x, stepping, n_valid)
+        if seen is not None and not bool(seen):
+            return c
+        seen = alive
+
+
+def _check_tail(num_slots: int, tail_slots: int) -> None:
+    if not 0 <= tail_slots < num_slots:
+        raise ValueError(f"tail_slots must be 0 (off) or in 1..{num_slots - 1} (below num_slots {num_slots}), "
+                         f"got {tail_slots}")
+
+
+def _queue_carry(policy: Policy, starts: QueueStarts, s: int, constrain: Callable[[Any, int], Any]) -> tuple:
+    """The loop's carry before its first iteration: s empty slots (a template, overwritten,
+    never stepped), every episode's results zero.
+    (t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results)."""
+    n_queue = starts.act_keys.shape[0]
     state = jax.tree.map(lambda x: jnp.zeros((s,) + x.shape[1:], x.dtype), starts.states)
     pstate = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype),
                           jax.eval_shape(lambda st: policy.init(policy.params, st), state))
-    per_row = per_row_leaves(policy, state)
     act_keys = jnp.zeros((s,) + starts.act_keys.shape[1:], starts.act_keys.dtype)
     slot_ep = jnp.full((s,), n_queue, jnp.int32)  # n_queue: an empty slot
     totals = _stats_shape(policy, state, pstate, act_keys)
     results = jax.tree.map(lambda x: jnp.zeros((n_queue,), x.dtype), EpisodeResults.of(state, totals))
-    n_valid = jnp.asarray(n_valid, jnp.int32)
+    zero = jnp.zeros((), jnp.int32)
+    return (zero, zero, zero, *constrain((slot_ep, state, pstate, act_keys, totals), s), results)
+
+
+def _constrain_carry(c: tuple, constrain: Callable[[Any, int], Any], s: int) -> tuple:
+    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+    return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals), s), results
+
+
+def _queue_refill(policy: Policy, starts: QueueStarts, n_valid: jnp.ndarray, s: int,
+                  refills_per_step: int | None) -> tuple[Callable[[tuple], tuple], Callable[[tuple], jnp.ndarray]]:
+    """(refill(carry): up to r slots take the next pending episodes, whether one is due)."""
+    n_queue = starts.act_keys.shape[0]
+    r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
     lanes = jnp.arange(r, dtype=jnp.int32)
 
     def refill(c):
         t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+        per_row = per_row_leaves(policy, state)
         eps = next_ep + lanes
         # Slots still holding the template are set first, in order (episodes past the queue
         # give them a valid, finished state); then the slots whose episode ended.
@@ -302,30 +420,11 @@ def run_queue(env: TabletopEnv, policy: Policy, keys: jax.Array | None, task_ids
         slot_ep = slot_ep.at[jnp.where(take, rows, s)].set(eps, mode="drop")
         return t, jnp.minimum(blank + r, s), next_ep + jnp.sum(take), slot_ep, state, pstate, act_keys, totals, results
 
-    step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue)
-
-    def body(c):
+    def due(c):
         blank, next_ep, slot_ep = c[1:4]
-        c = jax.lax.cond((blank < s) | (jnp.any(slot_ep == n_queue) & (next_ep < n_valid)), refill, lambda c: c, c)
-        c = jax.lax.cond(c[1] >= s, step, lambda c: c, c)  # control steps once every slot is set
-        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals), s), results
+        return (blank < s) | (jnp.any(slot_ep == n_queue) & (next_ep < n_valid))
 
-    c = (jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32),
-         *constrain((slot_ep, state, pstate, act_keys, totals), s), results)
-    if tail_slots == 0:
-        c = jax.lax.while_loop(cond, body, c)
-        return c[-1], c[0]
-
-    def head_cond(c):  # until the queue is empty and at most tail_slots slots run
-        blank, next_ep, slot_ep = c[1:4]
-        tail = (blank >= s) & (next_ep >= n_valid) & (jnp.sum(slot_ep < n_queue) <= tail_slots)
-        return cond(c) & ~tail
-
-    c = jax.lax.while_loop(head_cond, body, c)
-    if split:
-        return c
-    return run_queue_tail(env, policy, c, n_valid, max_steps, tail_slots, constrain)
+    return refill, due
 
 
 def run_queue_tail(env: TabletopEnv, policy: Policy, carry: tuple, n_valid: jnp.ndarray, max_steps: int,
@@ -351,30 +450,49 @@ def run_queue_tail(env: TabletopEnv, policy: Policy, carry: tuple, n_valid: jnp.
     return c[-1], c[0]
 
 
+def _queue_act(policy: Policy, c: tuple) -> tuple[tuple, jnp.ndarray]:
+    """The policy's action for a queue's slots, its decode statistics added to the running
+    slots' totals: (carry, actions)."""
+    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
+    action, pstate, stats = _act(policy, state, pstate, act_keys, None)
+    running = ~state.done
+    totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
+    return (t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results), action
+
+
+def _queue_record(n_queue: int, c: tuple, state: EnvState) -> tuple:
+    """The carry after a control step to `state`: the outcome of every episode that ended
+    written to its row (a slot's episode index n_queue: empty), the step counted."""
+    t, blank, next_ep, slot_ep, _, pstate, act_keys, totals, results = c
+    ended = (slot_ep < n_queue) & state.done
+    at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
+    results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
+    slot_ep = jnp.where(ended, n_queue, slot_ep)
+    return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
+
+
 def _queue_step(env: TabletopEnv, policy: Policy, n_queue: int) -> Callable[[tuple], tuple]:
-    """One control step of a queue's slots: act, step the envs, write the outcome of every
-    episode that ended to its row (a slot's episode index n_queue: empty)."""
+    """One control step of a queue's slots: act, step the envs, record the episodes that ended."""
 
     def step(c):
-        t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
-        action, pstate, stats = _act(policy, state, pstate, act_keys, None)
-        running = ~state.done
-        totals = {k: totals[k] + jnp.where(running, stats[k], 0.0) for k in totals}
-        state = jax.vmap(env.step)(state, action)
-        ended = (slot_ep < n_queue) & state.done
-        at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
-        results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
-        slot_ep = jnp.where(ended, n_queue, slot_ep)
-        return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
+        c, action = _queue_act(policy, c)
+        return _queue_record(n_queue, c, jax.vmap(env.step)(c[4], action))
 
     return step
 
 
-def _queue_cond(max_steps: int, n_valid: jnp.ndarray, n_queue: int) -> Callable[[tuple], jnp.ndarray]:
-    """Whether a queue's loop goes on: within `max_steps`, and an episode still runs or is pending."""
+def _queue_cond(max_steps: int, n_valid: jnp.ndarray, n_queue: int, tail_slots: int = 0
+                ) -> Callable[[tuple], jnp.ndarray]:
+    """Whether a queue's loop goes on: within `max_steps`, and an episode still runs or is
+    pending; with `tail_slots`, also not yet at the tail (the queue empty, at most that many
+    slots running)."""
 
     def cond(c):
         t, blank, next_ep, slot_ep, *_ = c
-        return (t < max_steps) & (jnp.any(slot_ep < n_queue) | (next_ep < n_valid))
+        go = (t < max_steps) & (jnp.any(slot_ep < n_queue) | (next_ep < n_valid))
+        if tail_slots:
+            tail = (next_ep >= n_valid) & (jnp.sum(slot_ep < n_queue) <= tail_slots)
+            go = go & ~(tail & (blank >= c[3].shape[0]))
+        return go
 
     return cond

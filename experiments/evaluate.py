@@ -159,6 +159,8 @@ def main(argv):
 
 
 def _split_text(split: dict[str, float]) -> str:
+    """The compile's seconds as words: a static batch's one program, or a queue's programs
+    (`{program}_{stage}` keys; their XLA compiles overlap, so they add up to more than the total)."""
     def stages(pre: str) -> str:
         if f"{pre}store" in split and not split[f"{pre}trace"]:
             return f"loaded from the executable store in {split[f'{pre}store']:.1f}s (no tracing, lowering or XLA)"
@@ -166,9 +168,14 @@ def _split_text(split: dict[str, float]) -> str:
                 f"{split[f'{pre}xla']:.1f}s (or its load from the compilation cache)" +
                 (f" + store {split[f'{pre}store']:.1f}s (keying and saving)" if f"{pre}store" in split else ""))
 
-    text = f"{split['total']:.1f}s: {stages('')}"
-    if "starts_trace" in split:
-        text += f"; the episodes' starts (env resets), their XLA beside the loop's: {stages('starts_')}"
+    if "trace" in split:
+        text = f"{split['total']:.1f}s: {stages('')}"
+    else:
+        parts = [k[:-len("_trace")] for k in split if k.endswith("_trace") and k != "tail_trace"]
+        total = {s: sum(split.get(f"{p}_{s}", 0.0) for p in parts) for s in ("trace", "lower", "xla")}
+        text = (f"{split['total']:.1f}s wall for {len(parts)} programs, their XLA side by side (trace "
+                f"{total['trace']:.1f}s + lower {total['lower']:.1f}s in turn, XLA {total['xla']:.1f}s in all): "
+                + "; ".join(f"{p}: {stages(p + '_')}" for p in parts))
     if "tail_trace" in split:
         text += (f"; the tail's program, beside the head's run: {stages('tail_')}, waited for "
                  f"{split.get('tail_wait', 0.0):.1f}s")

@@ -56,7 +56,9 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
     return out
 
 
-_BACKGROUND = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="heisd-compile")
+# XLA compiles a program on one thread (its backend's kernels aside): a rollout's programs
+# compile side by side here, and a tail's beside the head's run.
+_COMPILER = concurrent.futures.ThreadPoolExecutor(8, thread_name_prefix="heisd-compile")
 
 
 class _Staged(NamedTuple):
@@ -75,18 +77,22 @@ class _Staged(NamedTuple):
 class BatchRollout:
     """The jitted rollout of `queue` episodes in `num_envs` env slots, sharded over `devices`
     (default: all; the env slots are split, the policy's parameters replicated; one device: a
-    plain jit). queue == num_envs: one static batch, run until every env is done; queue >
-    num_envs: a slot whose episode ends takes the next pending one (`rollout.run_queue`), the
-    queue's episode starts (`rollout.queue_starts`) a program of their own, compiled beside the
-    loop's. Compiled ahead of time, so that calls time execution only. `seed=None`: the seed is an
-    input (`inputs(..., seed=)`), so one program serves every seed. `store`: compiled programs
-    are loaded from it, and stored in it when compiled, where the backend supports it
-    (`executable_store.supported`); the key adds this rollout's env, policy and sizes to the
-    store's identity. `tail_envs` (with a queue): the tail (`rollout.run_queue_tail`) is a
-    program of its own, compiled in the background while the head runs, so that its compile
-    adds to the wall time only where it outlasts the head."""
+    plain jit). queue == num_envs: one static batch, one program run until every env is done.
+    queue > num_envs: a slot whose episode ends takes the next pending one, as
+    `rollout.run_queue` runs it, but as programs the host drives (`rollout.queue_loop`): the
+    episodes' starts (`rollout.queue_starts`), the empty slots, and the loop's round split at the
+    env's step stages (refill + act + IK, the physics substeps, the derived state, camera and
+    outcomes). XLA compiles a program on one thread, so the several compile side by side, each
+    as soon as it is lowered. Compiled ahead of time, so that calls time execution only.
+    `seed=None`: the seed is an input (`inputs(..., seed=)`), so one program serves every seed.
+    `store`: compiled programs are loaded from it, and stored in it when compiled, where the
+    backend supports it (`executable_store.supported`); the key adds this rollout's env, policy
+    and sizes to the store's identity. `tail_envs` (with a queue): the loop stops where the
+    tail starts, and the tail (`rollout.run_queue_tail`) is a program of its own, compiled in
+    the background while the head runs, so that its compile adds to the wall time only where it
+    outlasts the head."""
 
-    _tail = _starts = None
+    _tail = _starts = _loop = None
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
@@ -109,37 +115,40 @@ class BatchRollout:
                 final, totals, steps = rollout.run_episodes(env, dataclasses.replace(policy, params=params), k, t,
                                                             max_steps, seed_in)
                 return rollout.EpisodeResults.of(final, totals), steps
+            self._run = jax.jit(run)
         else:
             bound = max_steps * -(-self.queue // num_envs) + self.queue  # refills wait at most a step each
             constrain = sharding.slot_constraint(self.mesh)
 
-            def starts(k, t, seed_in=seed):  # every queued episode's reset: a program of its own
+            def starts(k, t, seed_in=seed):  # every queued episode's reset
                 return rollout.queue_starts(env, k, t, seed_in)
 
-            def run(params, st, n_valid):  # with a tail: until the tail starts (its carry)
-                return rollout.run_queue(env, dataclasses.replace(policy, params=params), None, None, n_valid,
-                                         num_envs, bound, constrain=constrain, tail_slots=tail_envs,
-                                         split=tail_envs > 0, starts=st)
-
             self._starts = jax.jit(starts, out_shardings=sharding.replicated(self.mesh))
+            loop = rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain, tail_slots=tail_envs)
+            # the carry is donated: each round updates it in place
+            self._loop = rollout.QueueLoop(jax.jit(loop.init), jax.jit(loop.head, donate_argnums=1),
+                                           tuple(map(jax.jit, loop.stages)), jax.jit(loop.last, donate_argnums=0))
+            self._stage_names = tuple(getattr(f, "__name__", f"stage{i + 1}") for i, f in
+                                      enumerate(getattr(env, "step_stages", ())[1:-1]))
 
             if tail_envs:
                 def tail(params, carry, n_valid):
                     return rollout.run_queue_tail(env, dataclasses.replace(policy, params=params), carry, n_valid,
                                                   bound, tail_envs, constrain)
                 self._tail = jax.jit(tail)
-        self._run = jax.jit(run)
         self._compiled, self.compile_seconds = None, 0.0
-        # seconds: trace (Python), lower (to MLIR), xla (or its cache load); store (keying, and
-        # loading or saving the executable) where a store is used; tail_wait, with a tail: how
-        # long the run waited for the tail's program, compiled in the background as the head ran
+        # seconds by stage: trace (Python), lower (to MLIR), xla (or its cache load); store
+        # (keying, and loading or saving the executable) where a store is used. A static batch:
+        # its one program's. A queue: each program's, as `{program}_{stage}`, and compile_seconds
+        # the wall time (the XLA compiles overlap). tail_wait, with a tail: how long the run
+        # waited for the tail's program, compiled in the background as the head ran.
         self.compile_split: dict[str, float] = {}
         self.store = store if store is not None and executable_store.supported() else None
         self._identity = {"caller": None if store is None else store.identity, "env": env.config, "tasks": env.tasks,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
                           "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
                           "devices": [d.id for d in self.mesh.devices.flat]}
-        self._tail_compiled = self._tail_future = self._starts_compiled = None
+        self._tail_compiled = self._tail_future = self._starts_compiled = self._carry_info = None
         self.last_wait = 0.0  # seconds the last call waited for the tail's compile (counted as compile)
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
@@ -161,29 +170,44 @@ class BatchRollout:
         return self._compiled is not None
 
     def compile(self, inputs: tuple) -> None:
-        """Compiles (or loads) the program for `inputs`; with a queue, the episodes' starts (a
-        batched env reset) are a second program: both are traced and lowered here (the physics
-        patches tracing runs under are process-wide), then XLA compiles the starts in the
-        background beside the loop (XLA's passes run a program on one thread). With a tail,
-        starts the tail's compile in the background (`__call__` waits for it once the head has
-        run)."""
+        """Compiles (or loads) the programs for `inputs`. A queue's several are traced and
+        lowered here, one after another (the physics patches tracing runs under are
+        process-wide), and each goes to XLA in the background as soon as it is lowered, so
+        that the compiles overlap one another and the tracing of the next. With a tail,
+        starts the tail's compile in the background (`__call__` waits for it once the head
+        has run)."""
         if self._compiled is not None:
             return
-        part = "head" if self._tail else "all"
-        if self._starts is None:
-            self._compiled, self.compile_split = self._compile(self._run, inputs, part)
+        if self._loop is None:
+            self._compiled, self.compile_split = self._compile(self._run, inputs, "all")
             self.compile_seconds = sum(self.compile_split.values())
-        else:
-            t0 = time.perf_counter()
-            staged = self._lower(self._starts, self._starts_inputs(inputs), "starts", inputs)
-            loop = self._lower(self._run, (inputs[0], staged.out_info, inputs[3]), part, key_inputs=inputs)
-            future = _BACKGROUND.submit(self._finish, staged)
-            self._compiled, self.compile_split = self._finish(loop)
-            self._starts_compiled, split = future.result()
-            self.compile_split.update({f"starts_{k}": v for k, v in split.items()})
-            self.compile_seconds = time.perf_counter() - t0  # the two XLA compiles overlap
+            return
+        t0 = time.perf_counter()
+        params, n_valid = inputs[0], inputs[3]
+        futures = {}
+
+        def lowered(part, fn, args):
+            staged = self._lower(fn, args, part, key_inputs=inputs)
+            futures[part] = _COMPILER.submit(self._finish, staged)
+            return staged.out_info
+
+        starts = lowered("starts", self._starts, self._starts_inputs(inputs))
+        carry = lowered("init", self._loop.init, (starts,))
+        _, x, stepping = lowered("head", self._loop.head, (params, carry, starts, n_valid))
+        for name, stage in zip(self._stage_names, self._loop.stages):
+            x = lowered(name, stage, (carry, x, stepping))
+        lowered("last", self._loop.last, (carry, x, stepping, n_valid))
+        done, self.compile_split = {}, {}
+        for part, future in futures.items():
+            done[part], split = future.result()
+            self.compile_split.update({f"{part}_{k}": v for k, v in split.items()})
+        self._starts_compiled = done["starts"]
+        self._compiled = rollout.QueueLoop(done["init"], done["head"], tuple(done[n] for n in self._stage_names),
+                                           done["last"])
+        self._carry_info = carry
+        self.compile_seconds = time.perf_counter() - t0
         if self._tail:
-            self._tail_future = _BACKGROUND.submit(self._compile_tail, inputs)
+            self._tail_future = _COMPILER.submit(self._compile_tail, inputs)
 
     @staticmethod
     def _starts_inputs(inputs: tuple) -> tuple:
@@ -229,8 +253,7 @@ class BatchRollout:
 
     def _compile_tail(self, inputs: tuple):
         params, *_, n_valid = inputs[:4]
-        carry = self._compiled.out_info  # the head's carry, as the tail takes it
-        return self._compile(self._tail, (params, carry, n_valid), "tail", key_inputs=inputs)
+        return self._compile(self._tail, (params, self._carry_info, n_valid), "tail", key_inputs=inputs)
 
     def wait_compiled(self) -> None:
         """Waits for a tail's background compile; its seconds join compile_split as `tail_*`."""
@@ -241,11 +264,14 @@ class BatchRollout:
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
         self.compile(inputs)
-        run_inputs = inputs if self._starts is None else \
-            (inputs[0], self._starts_compiled(*self._starts_inputs(inputs)), inputs[3])
+        if self._loop is None:
+            return sharding.fetch(self._compiled(*inputs))
+        params, n_valid = inputs[0], inputs[3]
+        carry = rollout.drive_queue(self._compiled, params, self._starts_compiled(*self._starts_inputs(inputs)),
+                                    n_valid)
         if self._tail is None:
-            return sharding.fetch(self._compiled(*run_inputs))
-        carry = jax.block_until_ready(self._compiled(*run_inputs))
+            return sharding.fetch((carry[-1], carry[0]))
+        jax.block_until_ready(carry)
         t0 = time.perf_counter()
         waited = self._tail_compiled is None
         self.wait_compiled()
@@ -253,7 +279,7 @@ class BatchRollout:
         if waited:  # what the tail's compile added to the wall time
             self.compile_split["tail_wait"] = self.last_wait
             self.compile_seconds += self.last_wait
-        return sharding.fetch(self._tail_compiled(inputs[0], carry, inputs[3]))
+        return sharding.fetch(self._tail_compiled(params, carry, n_valid))
 
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,

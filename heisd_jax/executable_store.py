@@ -40,6 +40,7 @@ import os
 from pathlib import Path
 import pickle
 import tempfile
+import threading
 from typing import Any
 
 import jax
@@ -65,19 +66,30 @@ def supported(platform: str | None = None) -> bool:
     return (platform or jax.default_backend()) in ("cpu", "gpu", "cuda", "rocm") and jax.process_count() == 1
 
 
+_bypass_lock = threading.Lock()
+_bypass = {"depth": 0, "before": None}  # compiles inside `jax_cache_bypassed` now, and the setting they found
+
+
 @contextlib.contextmanager
 def jax_cache_bypassed():
-    """Inside, JAX's persistent compilation cache is neither read nor written."""
+    """Inside, JAX's persistent compilation cache is neither read nor written. Thread-safe:
+    compiles in several threads bypass it together, and the last to leave restores it."""
     from jax._src import compilation_cache  # noqa: PLC0415
 
-    before = jax.config.jax_enable_compilation_cache
-    jax.config.update("jax_enable_compilation_cache", False)
-    compilation_cache.reset_cache()  # JAX decides once whether the cache is used: decide again
+    with _bypass_lock:
+        if _bypass["depth"] == 0:
+            _bypass["before"] = jax.config.jax_enable_compilation_cache
+            jax.config.update("jax_enable_compilation_cache", False)
+            compilation_cache.reset_cache()  # JAX decides once whether the cache is used: decide again
+        _bypass["depth"] += 1
     try:
         yield
     finally:
-        jax.config.update("jax_enable_compilation_cache", before)
-        compilation_cache.reset_cache()
+        with _bypass_lock:
+            _bypass["depth"] -= 1
+            if _bypass["depth"] == 0:
+                jax.config.update("jax_enable_compilation_cache", _bypass["before"])
+                compilation_cache.reset_cache()
 
 
 def compile_storable(lowered):

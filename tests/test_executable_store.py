@@ -136,7 +136,7 @@ def test_a_bad_entry_is_a_miss_and_is_rewritten(tmp_path):
 
 @pytest.mark.slow
 def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path):
-    # 3 episodes in 2 slots: a queue, so two programs (the episodes' starts and the loop)
+    # 3 episodes in 2 slots: a queue, so several programs
     cmd = [sys.executable, "-m", "experiments.evaluate", "--method=expert", "--suites=spatial",
            "--tasks=left_block_plate", "--episodes=3", "--num_envs=2", "--compilation_cache=",
            f"--executable_store={tmp_path / 'store'}"]
@@ -150,8 +150,10 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
     assert "loaded from the executable store" not in runs[0][0] and "store" in runs[0][1]["timing"]["compile_split"]
     assert "loaded from the executable store" in runs[1][0]
     first, second = (r[1]["timing"]["compile_split"] for r in runs)
-    assert first["trace"] > 0.0 and first["starts_trace"] > 0.0 and "starts_store" in first
-    assert second["trace"] == second["starts_trace"] == second["xla"] == second["starts_xla"] == 0.0
+    programs = ("starts", "init", "head", "physics", "last")  # the queue's, the env's step split at its stages
+    assert {k.rsplit("_", 1)[0] for k in first} == set(programs) and "trace" not in first
+    assert all(first[f"{p}_trace"] > 0.0 and f"{p}_store" in first for p in programs)
+    assert all(second[f"{p}_{s}"] == 0.0 for p in programs for s in ("trace", "lower", "xla"))
     assert runs[0][1]["episodes"] == runs[1][1]["episodes"]
 
 
@@ -171,3 +173,17 @@ def test_the_store_keeps_within_its_size_by_dropping_the_least_recently_used(tmp
     tiny = xs.ExecutableStore(tmp_path / "store", max_bytes=1)  # even too small, the new entry stays
     assert tiny.save("d", compiled)
     assert [p.stem for p in tiny.directory.glob(f"*{xs.SUFFIX}")] == ["d"]
+
+
+def test_bypassing_the_cache_nests_across_threads():
+    """Compiles in several threads bypass JAX's cache together: it stays off until the last
+    leaves, then the setting found by the first is restored, in whatever order they leave."""
+    before = jax.config.jax_enable_compilation_cache
+    a, b = xs.jax_cache_bypassed(), xs.jax_cache_bypassed()
+    a.__enter__()
+    b.__enter__()
+    assert not jax.config.jax_enable_compilation_cache
+    a.__exit__(None, None, None)  # the first to enter leaves first
+    assert not jax.config.jax_enable_compilation_cache
+    b.__exit__(None, None, None)
+    assert jax.config.jax_enable_compilation_cache == before

@@ -190,3 +190,51 @@ def test_the_program_holds_one_env_reset(case):
         text = str(jax.make_jaxpr(lambda k, t, n: rollout.run_queue(_MarkedEnv(), _policy(), k, t, n, slots, 100))(
             keys, task_ids, jnp.int32(N_EPISODES)))
         assert text.count("population_count") == 1, slots
+
+
+class _StagedEnv(_Env):
+    """The stand-in env with its step in three stages, as TabletopEnv.step_stages splits its own."""
+
+    @property
+    def step_stages(self):
+        return (lambda st, a: a[0] * 2.0,
+                lambda st, x: (x, st.step + 1),
+                lambda st, x: _Env.step(self, st, jnp.full((7,), x[0] / 2.0)))
+
+
+def _driven(env, slots, n, tail_slots=0, check_every=8, refills=None):
+    """`queue_loop`'s functions, each jitted apart, driven from the host (as the evaluator runs them)."""
+    loop = rollout.queue_loop(env, _sized_policy(), slots, 1000, refills_per_step=refills, tail_slots=tail_slots)
+    loop = rollout.QueueLoop(jax.jit(loop.init), jax.jit(loop.head), tuple(map(jax.jit, loop.stages)),
+                             jax.jit(loop.last))
+    return lambda starts: rollout.drive_queue(loop, None, starts, n, check_every=check_every)
+
+
+@pytest.mark.parametrize("env", [_Env(), _StagedEnv()], ids=["one stage", "three stages"])
+@pytest.mark.parametrize("slots,refills,check_every", [(3, 1, 1), (4, None, 3), (12, None, 8)])
+def test_a_host_driven_loop_of_programs_runs_as_one_program(case, env, slots, refills, check_every):
+    """`queue_loop`'s programs driven from the host (`drive_queue`, `alive` read late) end every
+    episode, and the loop, exactly as `run_queue`'s one program."""
+    keys, task_ids, *_ = case
+    n = jnp.int32(N_EPISODES)
+    starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
+    one = jax.jit(lambda st, n: rollout.run_queue(_Env(), _sized_policy(), None, None, n, slots, 1000,
+                                                  refills_per_step=refills, starts=st))
+    out, steps = one(starts, n)
+    c = _driven(env, slots, n, check_every=check_every, refills=refills)(starts)
+    assert int(steps) == int(c[0])
+    jax.tree.map(np.testing.assert_array_equal, out, c[-1])
+
+
+def test_a_host_driven_loop_stops_where_the_tail_starts(case):
+    """With `tail_slots`, the driven loop's carry is the one-program head's, which
+    `run_queue_tail` finishes as one program with the tail does."""
+    keys, task_ids, *_ = case
+    n = jnp.int32(N_EPISODES)
+    starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
+    one = jax.jit(lambda st, n: rollout.run_queue(_Env(), _sized_policy(), None, None, n, 4, 1000, tail_slots=2,
+                                                  starts=st))
+    tail = jax.jit(lambda c, n: rollout.run_queue_tail(_Env(), _sized_policy(), c, n, 1000, 2))
+    (out, steps), (out2, steps2) = one(starts, n), tail(_driven(_StagedEnv(), 4, n, tail_slots=2)(starts), n)
+    assert int(steps) == int(steps2)
+    jax.tree.map(np.testing.assert_array_equal, out, out2)
