@@ -1,7 +1,6 @@
 """Closed-loop batched evaluation on the fixed evaluation initial states.
 
-  python -m experiments.evaluate --method=ar --suites=all --episodes=50 --num_envs=64 \
-      --out=results/eval_ar.json
+  python -m experiments.evaluate --method=ar --suites=all --episodes=50 --out=results/eval_ar.json
 
 Writes per-task and per-suite success rates and per-action decoding statistics (target
 passes per action, wall-clock per batched control step) to --out (JSON) after every batch;
@@ -33,7 +32,8 @@ flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method 
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the first N of the fixed 50).")
-flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
+flags.DEFINE_integer("num_envs", 0, "Episodes run in parallel; 0: heisd_jax.evaluate.default_num_envs() (512 per GPU, "
+                     "64 on a CPU).", lower_bound=0)
 flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pending episode: every pending episode in "
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
@@ -55,7 +55,7 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs, refill=FLAGS.refill,
+        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs or ev.default_num_envs(), refill=FLAGS.refill,
                             tail_envs=FLAGS.tail_envs)
         for n in filter(None, (cfg.num_envs, cfg.tail_envs)):  # the tail's batch too, if any
             sharding.check_batch(n, sharding.env_mesh())

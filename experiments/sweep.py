@@ -44,7 +44,8 @@ flags.DEFINE_string("methods", "ar", "Comma-separated methods, each NAME or NAME
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
-flags.DEFINE_list("num_envs", ["64"], "Batch sizes (parallel envs).")
+flags.DEFINE_list("num_envs", ["0"], "Batch sizes (parallel envs); 0: heisd_jax.evaluate.default_num_envs() (512 per "
+                  "GPU, 64 on a CPU).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 cli.define_tail_flag()
 cli.define_store_flag()
@@ -137,7 +138,7 @@ def main(argv):
         suites_arg if isinstance(suites_arg, list) else suites_arg.split(","))
     task_filter = conf.get("tasks", FLAGS.tasks) or None
     episodes = int(conf.get("episodes", FLAGS.episodes))
-    num_envs = [int(x) for x in conf.get("num_envs", FLAGS.num_envs)]
+    num_envs = [int(x) or ev.default_num_envs() for x in conf.get("num_envs", FLAGS.num_envs)]
     seeds = [int(x) for x in conf.get("seeds", FLAGS.seeds)]
     try:
         chosen = tasks_lib.get_tasks(",".join(suites), task_filter)

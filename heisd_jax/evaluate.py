@@ -43,6 +43,20 @@ class EvalConfig:
             raise ValueError("tail_envs needs refill (a static batch has no queue to drain)")
 
 
+NUM_ENVS_PER_GPU = 512  # env slots per GPU when none are asked for (`default_num_envs`)
+
+
+def default_num_envs(devices: Sequence[jax.Device] | None = None) -> int:
+    """Env slots when none are asked for: `NUM_ENVS_PER_GPU` per GPU of `devices` (default: all),
+    else `EvalConfig.num_envs`. On one H100, AR's 2,000-episode evaluation ran 46 s at 512 slots
+    against 64 s at 1,000: a control step's cost grows with the slots, and past ~500 the run is
+    bound by the long suite's 420-step limit (BENCHMARKS.md)."""
+    devices = jax.devices() if devices is None else devices
+    if devices[0].platform == "gpu":
+        return NUM_ENVS_PER_GPU * len(devices)
+    return EvalConfig.num_envs
+
+
 def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
                      tasks: Collection[str] | None = None) -> list[tuple[int, int]]:
     """(task index, episode) pairs not yet in `done` (task name -> per-episode results), of

@@ -16,6 +16,8 @@ CASES = [
     ("evaluate", ["--method=nope"], "ar|drafter|expert|heisd|retrieval"),
     ("evaluate", ["--num_envs=8", "--tail_envs=8"], "tail_envs must be 0 (off) or in 1..7"),
     ("sweep", ["--num_envs=8,16", "--tail_envs=12"], "tail_envs must be 0 (off) or in 1..7"),
+    ("evaluate", ["--num_envs=-1"], "num_envs"),
+    ("sweep", ["--num_envs=8,-2"], "num_envs must be >= 1"),
     ("evaluate", ["--physics=max_contact=32"], "with a field among integrator, force_limits"),
     ("sweep", ["--physics=ls_iterations=0"], "ls_iterations must be at least 1"),
     ("bench_env", ["--physics=;max_contacts=x"], "max_contacts takes a int"),
