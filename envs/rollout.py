@@ -290,79 +290,76 @@ class QueueLoop(NamedTuple):
     """`run_queue`'s loop as pure functions for a host to drive, each a program of its own
     (XLA compiles them in parallel), the env's step split at its `step_stages`:
 
-        carry = init(starts)
-        repeat:  carry, x, stepping = head(params, carry, starts, n_valid)  # refill, act, stage 0
-                 x = stage(carry, x, stepping) for each middle stage          # e.g. the physics
-                 carry, alive = last(carry, x, stepping, n_valid)            # last stage, outcomes
+        carry = init(params, starts, n_valid)                # every slot takes an episode
+        repeat:  carry, x, go = head(params, carry, starts, n_valid)  # refill, act, stage 0
+                 x = stage(carry, x) for each middle stage               # e.g. the physics
+                 carry, alive = last(carry, x, go, n_valid)             # last stage, outcomes
         until alive is False; then carry[-1] holds the results, carry[0] the control steps.
 
-    One round is one iteration of `run_queue`'s loop, the same code; a round after the loop's
-    end changes nothing, so a host may check `alive` a few rounds late (`drive_queue`). With
-    `tail_slots`, `alive` turns False where the tail starts, and the carry is `run_queue_tail`'s."""
-    init: Callable[[QueueStarts], tuple]
+    A round is one control step of `run_queue`'s loop, the same code, every episode ending as
+    there; the slots are filled at once rather than `refills_per_step` per iteration (the
+    episodes do not depend on when they start). A round after the loop's end (`go` False)
+    leaves the carry as it was, so a host may read `alive` a round late (`drive_queue`). No
+    program holds a conditional, which on a GPU would hold the host until the device reaches
+    it. With `tail_slots`, `alive` turns False where the tail starts, and the carry is
+    `run_queue_tail`'s."""
+    init: Callable[[Any, QueueStarts, jnp.ndarray], tuple]
     head: Callable[[Any, tuple, QueueStarts, jnp.ndarray], tuple]
-    stages: tuple[Callable[[tuple, Any, jnp.ndarray], Any], ...]
+    stages: tuple[Callable[[tuple, Any], Any], ...]
     last: Callable[[tuple, Any, jnp.ndarray, jnp.ndarray], tuple]
 
 
 def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int, refills_per_step: int | None = None,
                constrain: Callable[[Any, int], Any] = lambda tree, n: tree, tail_slots: int = 0) -> QueueLoop:
     """`run_queue`'s loop (same arguments) as a `QueueLoop`, policy parameters an input of
-    `head`. The env's step splits at `env.step_stages` where it has them (else one stage,
-    `env.step`)."""
+    `init` and `head`. The env's step splits at `env.step_stages` where it has them (else one
+    stage, `env.step`)."""
     s = num_slots
     _check_tail(s, tail_slots)
-    stages = getattr(env, "step_stages", (env.step,))
-    batched = [jax.vmap(f) for f in stages]
+    batched = [jax.vmap(f) for f in getattr(env, "step_stages", (env.step,))]
 
-    def skipped(fn, *args):  # zeros of fn's output: a round that does not step
-        return jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), jax.eval_shape(fn, *args))
+    def kept(go, new, old):  # new where the round runs, else old
+        return jax.tree.map(lambda n, o: jnp.where(go, n, o), new, old)
+
+    def init(params, starts, n_valid):
+        pol = dataclasses.replace(policy, params=params)
+        fill, _ = _queue_refill(pol, starts, n_valid, s, s)
+        return _constrain_carry(fill(_queue_carry(pol, starts, s, constrain)), constrain, s)
 
     def head(params, c, starts, n_valid):
         pol = dataclasses.replace(policy, params=params)
-        n_queue = starts.act_keys.shape[0]
-        refill, refill_due = _queue_refill(pol, starts, n_valid, s, refills_per_step)
-        go = _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
-        c = jax.lax.cond(go & refill_due(c), refill, lambda c: c, c)
-        stepping = go & (c[1] >= s)
-
-        def act(c):
-            c, action = _queue_act(pol, c)
-            return c, batched[0](c[4], action)
-
-        action = jnp.zeros((s, 7), jnp.float32)
-        c, x = jax.lax.cond(stepping, act, lambda c: (c, skipped(batched[0], c[4], action)), c)
-        return _constrain_carry(c, constrain, s), constrain(x, s), stepping
+        go = _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c)
+        refill, _ = _queue_refill(pol, starts, n_valid, s, refills_per_step)
+        c = refill(c, go)  # takes nothing unless a slot is free and an episode pending
+        acted, action = _queue_act(pol, c)
+        c = c[:5] + kept(go, acted[5:8], c[5:8]) + c[8:]  # the policy's state, keys, totals
+        return _constrain_carry(c, constrain, s), constrain(batched[0](c[4], action), s), go
 
     def middle(fn):
-        def stage(c, x, stepping):
-            return constrain(jax.lax.cond(stepping, fn, lambda st, x: skipped(fn, st, x), c[4], x), s)
-        return stage
+        return lambda c, x: constrain(fn(c[4], x), s)
 
-    def last(c, x, stepping, n_valid):
+    def last(c, x, go, n_valid):
         n_queue = jax.tree.leaves(c[-1])[0].shape[0]
-        new_state = (lambda c, x: batched[-1](c[4], x)) if len(batched) > 1 else (lambda c, x: x)
-        c = jax.lax.cond(stepping, lambda c, x: _queue_record(n_queue, c, new_state(c, x)), lambda c, x: c, c, x)
+        state = kept(go, batched[-1](c[4], x) if len(batched) > 1 else x, c[4])
+        c = _queue_record(n_queue, c, state, count=go.astype(jnp.int32))
         return _constrain_carry(c, constrain, s), _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
 
-    return QueueLoop(init=lambda starts: _queue_carry(policy, starts, s, constrain), head=head,
-                     stages=tuple(middle(f) for f in batched[1:-1]), last=last)
+    return QueueLoop(init=init, head=head, stages=tuple(middle(f) for f in batched[1:-1]), last=last)
 
 
-def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, check_every: int = 8) -> tuple:
+def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray) -> tuple:
     """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
-    (or where its tail starts); returns the final carry. `alive` is read every `check_every`
-    rounds, one batch of rounds late, so the host queues the next rounds while the device runs."""
-    c, seen = loop.init(starts), None
+    (or where its tail starts); returns the final carry. Each round's `alive` is read after
+    the next round is queued, so the device is not left waiting for the host."""
+    c, alive = loop.init(params, starts, n_valid), None
     while True:
-        for _ in range(check_every):
-            c, x, stepping = loop.head(params, c, starts, n_valid)
-            for stage in loop.stages:
-                x = stage(c, x, stepping)
-            c, alive = loop.last(c, x, stepping, n_valid)
-        if seen is not None and not bool(seen):
+        c, x, go = loop.head(params, c, starts, n_valid)
+        for stage in loop.stages:
+            x = stage(c, x)
+        c, now = loop.last(c, x, go, n_valid)
+        if alive is not None and not bool(alive):
             return c
-        seen = alive
+        alive = now
 
 
 def _check_tail(num_slots: int, tail_slots: int) -> None:
@@ -399,7 +396,7 @@ def _queue_refill(policy: Policy, starts: QueueStarts, n_valid: jnp.ndarray, s: 
     r = max(1, s // 8) if refills_per_step is None else min(refills_per_step, s)
     lanes = jnp.arange(r, dtype=jnp.int32)
 
-    def refill(c):
+    def refill(c, go=True):  # go: a traced bool, False takes nothing
         t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = c
         per_row = per_row_leaves(policy, state)
         eps = next_ep + lanes
@@ -408,6 +405,8 @@ def _queue_refill(policy: Policy, starts: QueueStarts, n_valid: jnp.ndarray, s: 
         free = jnp.nonzero(slot_ep == n_queue, size=r, fill_value=s)[0]
         rows = jnp.where(blank < s, blank + lanes, free)  # [r] slot rows; >= s: none
         take = (rows < s) & (eps < n_valid)
+        if go is not True:
+            take = take & go
         rows = jnp.where(take | (blank < s), rows, s)
         idx = jnp.minimum(eps, n_queue - 1)
         s2, k2 = jax.tree.map(lambda x: x[idx], tuple(starts))
@@ -460,15 +459,15 @@ def _queue_act(policy: Policy, c: tuple) -> tuple[tuple, jnp.ndarray]:
     return (t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results), action
 
 
-def _queue_record(n_queue: int, c: tuple, state: EnvState) -> tuple:
+def _queue_record(n_queue: int, c: tuple, state: EnvState, count: int | jnp.ndarray = 1) -> tuple:
     """The carry after a control step to `state`: the outcome of every episode that ended
-    written to its row (a slot's episode index n_queue: empty), the step counted."""
+    written to its row (a slot's episode index n_queue: empty), `count` added to the steps."""
     t, blank, next_ep, slot_ep, _, pstate, act_keys, totals, results = c
     ended = (slot_ep < n_queue) & state.done
     at = jnp.where(ended, slot_ep, n_queue)  # n_queue: dropped
     results = jax.tree.map(lambda r, x: r.at[at].set(x, mode="drop"), results, EpisodeResults.of(state, totals))
     slot_ep = jnp.where(ended, n_queue, slot_ep)
-    return t + 1, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
+    return t + count, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results
 
 
 def _queue_step(env: TabletopEnv, policy: Policy, n_queue: int) -> Callable[[tuple], tuple]:

@@ -14,6 +14,7 @@ installed versions are the recorded ones (envs/_xla.py). Run it on the GPU the r
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 import shutil
@@ -68,6 +69,9 @@ def main(argv):
         text = Path(load).read_text()
         entries = sum(line.startswith("entries {") for line in text.splitlines())
         made = results_io.provenance(cli.command_line())  # the device: JAX starts here, once the children are done
+        if FLAGS.extend and out.with_suffix(".json").is_file():  # the programs of the entries kept
+            old = json.loads(out.with_suffix(".json").read_text())
+            commands = [c for c in old.get("programs", []) if c not in commands] + commands
         record = {"versions": _xla.jax_versions(), "device": made["device"], "entries": entries, "programs": commands,
                   "extended": FLAGS.extend, "command": made["command"], "commit": made["commit"], "date": made["date"]}
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -198,19 +198,21 @@ class BatchRollout:
             return
         t0 = time.perf_counter()
         params, n_valid = inputs[0], inputs[3]
-        futures = {}
+        staged = {}
 
         def lowered(part, fn, args):
-            staged = self._lower(fn, args, part, key_inputs=inputs)
-            futures[part] = _COMPILER.submit(self._finish, staged)
-            return staged.out_info
+            staged[part] = self._lower(fn, args, part, key_inputs=inputs)
+            return staged[part].out_info
 
         starts = lowered("starts", self._starts, self._starts_inputs(inputs))
-        carry = lowered("init", self._loop.init, (starts,))
-        _, x, stepping = lowered("head", self._loop.head, (params, carry, starts, n_valid))
+        carry = lowered("init", self._loop.init, (params, starts, n_valid))
+        _, x, go = lowered("head", self._loop.head, (params, carry, starts, n_valid))
         for name, stage in zip(self._stage_names, self._loop.stages):
-            x = lowered(name, stage, (carry, x, stepping))
-        lowered("last", self._loop.last, (carry, x, stepping, n_valid))
+            x = lowered(name, stage, (carry, x))
+        lowered("last", self._loop.last, (carry, x, go, n_valid))
+        # XLA after all the tracing: a compile beside the tracing slows it (on a GPU host
+        # XLA's code generation takes every core), and the largest compile outlasts it anyway
+        futures = {part: _COMPILER.submit(self._finish, st) for part, st in staged.items()}
         done, self.compile_split = {}, {}
         for part, future in futures.items():
             done[part], split = future.result()

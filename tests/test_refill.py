@@ -202,28 +202,47 @@ class _StagedEnv(_Env):
                 lambda st, x: _Env.step(self, st, jnp.full((7,), x[0] / 2.0)))
 
 
-def _driven(env, slots, n, tail_slots=0, check_every=8, refills=None):
+def _driven(env, slots, n, tail_slots=0, refills=None):
     """`queue_loop`'s functions, each jitted apart, driven from the host (as the evaluator runs them)."""
     loop = rollout.queue_loop(env, _sized_policy(), slots, 1000, refills_per_step=refills, tail_slots=tail_slots)
     loop = rollout.QueueLoop(jax.jit(loop.init), jax.jit(loop.head), tuple(map(jax.jit, loop.stages)),
                              jax.jit(loop.last))
-    return lambda starts: rollout.drive_queue(loop, None, starts, n, check_every=check_every)
+    return lambda starts: rollout.drive_queue(loop, None, starts, n)
 
 
 @pytest.mark.parametrize("env", [_Env(), _StagedEnv()], ids=["one stage", "three stages"])
-@pytest.mark.parametrize("slots,refills,check_every", [(3, 1, 1), (4, None, 3), (12, None, 8)])
-def test_a_host_driven_loop_of_programs_runs_as_one_program(case, env, slots, refills, check_every):
-    """`queue_loop`'s programs driven from the host (`drive_queue`, `alive` read late) end every
-    episode, and the loop, exactly as `run_queue`'s one program."""
+@pytest.mark.parametrize("slots,refills", [(3, 1), (4, None), (12, None)])
+def test_a_host_driven_loop_of_programs_runs_as_one_program(case, env, slots, refills):
+    """`queue_loop`'s programs driven from the host (`drive_queue`, `alive` read a round late)
+    end every episode, and the loop, exactly as `run_queue`'s one program."""
     keys, task_ids, *_ = case
     n = jnp.int32(N_EPISODES)
     starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
     one = jax.jit(lambda st, n: rollout.run_queue(_Env(), _sized_policy(), None, None, n, slots, 1000,
                                                   refills_per_step=refills, starts=st))
     out, steps = one(starts, n)
-    c = _driven(env, slots, n, check_every=check_every, refills=refills)(starts)
+    c = _driven(env, slots, n, refills=refills)(starts)
     assert int(steps) == int(c[0])
     jax.tree.map(np.testing.assert_array_equal, out, c[-1])
+
+
+def test_a_round_past_the_end_changes_nothing(case):
+    """A round run after `alive` turned False (the host reads it a round late) leaves the
+    carry as it was, at the queue's end as at the loop bound with episodes still running."""
+    keys, task_ids, *_ = case
+    starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
+    for bound in (1000, 6):
+        loop = rollout.queue_loop(_StagedEnv(), _sized_policy(), 4, bound)
+        n = jnp.int32(N_EPISODES)
+        c, alive = jax.jit(loop.init)(None, starts, n), True
+        while alive:
+            c, x, go = jax.jit(loop.head)(None, c, starts, n)
+            c, alive = jax.jit(loop.last)(c, jax.jit(loop.stages[0])(c, x), go, n)
+        c2, x, go = jax.jit(loop.head)(None, c, starts, n)
+        c2, _ = jax.jit(loop.last)(c2, jax.jit(loop.stages[0])(c2, x), go, n)
+        assert not bool(go)
+        jax.tree.map(np.testing.assert_array_equal, c, c2)
+        assert (int(c[0]) == 6) == (bound == 6) and (int(jnp.sum(c[-1].steps > 0)) < N_EPISODES) == (bound == 6)
 
 
 def test_a_host_driven_loop_stops_where_the_tail_starts(case):
