@@ -290,30 +290,29 @@ class QueueLoop(NamedTuple):
     """`run_queue`'s loop as pure functions for a host to drive, each a program of its own
     (XLA compiles them in parallel), the env's step split at its `step_stages`:
 
-        carry = init(params, starts, n_valid)                # every slot takes an episode
-        repeat:  carry, x, go = head(params, carry, starts, n_valid)  # refill, act, stage 0
-                 x = stage(carry, x) for each middle stage               # e.g. the physics
-                 carry, alive = last(carry, x, go, n_valid)             # last stage, outcomes
+        carry, x, go = first(params, starts, n_valid)   # every slot takes an episode; stage 0
+        repeat:  x = stage(carry, x) for each middle stage                       # e.g. the physics
+                 carry, x, go, alive = turn(params, carry, x, go, starts, n_valid)
         until alive is False; then carry[-1] holds the results, carry[0] the control steps.
 
     A round is one control step of `run_queue`'s loop, the same code, every episode ending as
-    there; the slots are filled at once rather than `refills_per_step` per iteration (the
-    episodes do not depend on when they start). A round after the loop's end (`go` False)
-    leaves the carry as it was, so a host may read `alive` a round late (`drive_queue`). No
-    program holds a conditional, which on a GPU would hold the host until the device reaches
-    it. With `tail_slots`, `alive` turns False where the tail starts, and the carry is
-    `run_queue_tail`'s."""
-    init: Callable[[Any, QueueStarts, jnp.ndarray], tuple]
-    head: Callable[[Any, tuple, QueueStarts, jnp.ndarray], tuple]
+    there: `turn` ends one control step (the last stage, the outcomes of the episodes that
+    ended) and begins the next (refill, the policy's action, stage 0), so a round is the
+    middle stages and one `turn`. The slots are filled at once rather than `refills_per_step`
+    per iteration (the episodes do not depend on when they start). A round after the loop's
+    end (`go` False) leaves the carry as it was, so a host may read `alive` a round late
+    (`drive_queue`). No program holds a conditional, which on a GPU would hold the host until
+    the device reaches it. With `tail_slots`, `alive` turns False where the tail starts, and
+    the carry is `run_queue_tail`'s."""
+    first: Callable[[Any, QueueStarts, jnp.ndarray], tuple]
     stages: tuple[Callable[[tuple, Any], Any], ...]
-    last: Callable[[tuple, Any, jnp.ndarray, jnp.ndarray], tuple]
+    turn: Callable[[Any, tuple, Any, jnp.ndarray, QueueStarts, jnp.ndarray], tuple]
 
 
 def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int, refills_per_step: int | None = None,
                constrain: Callable[[Any, int], Any] = lambda tree, n: tree, tail_slots: int = 0) -> QueueLoop:
-    """`run_queue`'s loop (same arguments) as a `QueueLoop`, policy parameters an input of
-    `init` and `head`. The env's step splits at `env.step_stages` where it has them (else one
-    stage, `env.step`)."""
+    """`run_queue`'s loop (same arguments) as a `QueueLoop`, policy parameters an input. The
+    env's step splits at `env.step_stages` where it has them (else one stage, `env.step`)."""
     s = num_slots
     _check_tail(s, tail_slots)
     batched = [jax.vmap(f) for f in getattr(env, "step_stages", (env.step,))]
@@ -321,13 +320,7 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
     def kept(go, new, old):  # new where the round runs, else old
         return jax.tree.map(lambda n, o: jnp.where(go, n, o), new, old)
 
-    def init(params, starts, n_valid):
-        pol = dataclasses.replace(policy, params=params)
-        fill, _ = _queue_refill(pol, starts, n_valid, s, s)
-        return _constrain_carry(fill(_queue_carry(pol, starts, s, constrain)), constrain, s)
-
-    def head(params, c, starts, n_valid):
-        pol = dataclasses.replace(policy, params=params)
+    def head(pol, c, starts, n_valid):  # refill, act, stage 0
         go = _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c)
         refill, _ = _queue_refill(pol, starts, n_valid, s, refills_per_step)
         c = refill(c, go)  # takes nothing unless a slot is free and an episode pending
@@ -335,28 +328,34 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
         c = c[:5] + kept(go, acted[5:8], c[5:8]) + c[8:]  # the policy's state, keys, totals
         return _constrain_carry(c, constrain, s), constrain(batched[0](c[4], action), s), go
 
+    def first(params, starts, n_valid):
+        pol = dataclasses.replace(policy, params=params)
+        fill, _ = _queue_refill(pol, starts, n_valid, s, s)
+        return head(pol, fill(_queue_carry(pol, starts, s, constrain)), starts, n_valid)
+
     def middle(fn):
         return lambda c, x: constrain(fn(c[4], x), s)
 
-    def last(c, x, go, n_valid):
-        n_queue = jax.tree.leaves(c[-1])[0].shape[0]
+    def turn(params, c, x, go, starts, n_valid):  # the last stage, outcomes; then the next head
+        n_queue = starts.act_keys.shape[0]
         state = kept(go, batched[-1](c[4], x) if len(batched) > 1 else x, c[4])
         c = _queue_record(n_queue, c, state, count=go.astype(jnp.int32))
-        return _constrain_carry(c, constrain, s), _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
+        alive = _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
+        return *head(dataclasses.replace(policy, params=params), c, starts, n_valid), alive
 
-    return QueueLoop(init=init, head=head, stages=tuple(middle(f) for f in batched[1:-1]), last=last)
+    return QueueLoop(first=first, stages=tuple(middle(f) for f in batched[1:-1]), turn=turn)
 
 
 def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray) -> tuple:
     """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
     (or where its tail starts); returns the final carry. Each round's `alive` is read after
     the next round is queued, so the device is not left waiting for the host."""
-    c, alive = loop.init(params, starts, n_valid), None
+    c, x, go = loop.first(params, starts, n_valid)
+    alive = None
     while True:
-        c, x, go = loop.head(params, c, starts, n_valid)
         for stage in loop.stages:
             x = stage(c, x)
-        c, now = loop.last(c, x, go, n_valid)
+        c, x, go, now = loop.turn(params, c, x, go, starts, n_valid)
         if alive is not None and not bool(alive):
             return c
         alive = now

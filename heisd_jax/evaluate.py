@@ -94,10 +94,10 @@ class BatchRollout:
     plain jit). queue == num_envs: one static batch, one program run until every env is done.
     queue > num_envs: a slot whose episode ends takes the next pending one, as
     `rollout.run_queue` runs it, but as programs the host drives (`rollout.queue_loop`): the
-    episodes' starts (`rollout.queue_starts`), the empty slots, and the loop's round split at the
-    env's step stages (refill + act + IK, the physics substeps, the derived state, camera and
-    outcomes). XLA compiles a program on one thread, so the several compile side by side, each
-    as soon as it is lowered. Compiled ahead of time, so that calls time execution only.
+    episodes' starts (`rollout.queue_starts`); `first` (the slots filled, the first action and
+    IK); the physics substeps; and `turn` (the derived state, camera and outcomes of one step,
+    then the next refill, action and IK). XLA compiles a program on one thread, so they compile
+    side by side once all are traced. Compiled ahead of time, so that calls time execution only.
     `seed=None`: the seed is an input (`inputs(..., seed=)`), so one program serves every seed.
     `store`: compiled programs are loaded from it, and stored in it when compiled, where the
     backend supports it (`executable_store.supported`); the key adds this rollout's env, policy
@@ -140,8 +140,8 @@ class BatchRollout:
             self._starts = jax.jit(starts, out_shardings=sharding.replicated(self.mesh))
             loop = rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain, tail_slots=tail_envs)
             # the carry is donated: each round updates it in place
-            self._loop = rollout.QueueLoop(jax.jit(loop.init), jax.jit(loop.head, donate_argnums=1),
-                                           tuple(map(jax.jit, loop.stages)), jax.jit(loop.last, donate_argnums=0))
+            self._loop = rollout.QueueLoop(jax.jit(loop.first), tuple(map(jax.jit, loop.stages)),
+                                           jax.jit(loop.turn, donate_argnums=1))
             self._stage_names = tuple(getattr(f, "__name__", f"stage{i + 1}") for i, f in
                                       enumerate(getattr(env, "step_stages", ())[1:-1]))
 
@@ -186,8 +186,7 @@ class BatchRollout:
     def compile(self, inputs: tuple) -> None:
         """Compiles (or loads) the programs for `inputs`. A queue's several are traced and
         lowered here, one after another (the physics patches tracing runs under are
-        process-wide), and each goes to XLA in the background as soon as it is lowered, so
-        that the compiles overlap one another and the tracing of the next. With a tail,
+        process-wide), then compiled by XLA side by side in the background. With a tail,
         starts the tail's compile in the background (`__call__` waits for it once the head
         has run)."""
         if self._compiled is not None:
@@ -205,11 +204,11 @@ class BatchRollout:
             return staged[part].out_info
 
         starts = lowered("starts", self._starts, self._starts_inputs(inputs))
-        carry = lowered("init", self._loop.init, (params, starts, n_valid))
-        _, x, go = lowered("head", self._loop.head, (params, carry, starts, n_valid))
+        carry, x0, go = lowered("first", self._loop.first, (params, starts, n_valid))
+        x = x0
         for name, stage in zip(self._stage_names, self._loop.stages):
             x = lowered(name, stage, (carry, x))
-        lowered("last", self._loop.last, (carry, x, go, n_valid))
+        lowered("turn", self._loop.turn, (params, carry, x, go, starts, n_valid))
         # XLA after all the tracing: a compile beside the tracing slows it (on a GPU host
         # XLA's code generation takes every core), and the largest compile outlasts it anyway
         futures = {part: _COMPILER.submit(self._finish, st) for part, st in staged.items()}
@@ -218,8 +217,7 @@ class BatchRollout:
             done[part], split = future.result()
             self.compile_split.update({f"{part}_{k}": v for k, v in split.items()})
         self._starts_compiled = done["starts"]
-        self._compiled = rollout.QueueLoop(done["init"], done["head"], tuple(done[n] for n in self._stage_names),
-                                           done["last"])
+        self._compiled = rollout.QueueLoop(done["first"], tuple(done[n] for n in self._stage_names), done["turn"])
         self._carry_info = carry
         self.compile_seconds = time.perf_counter() - t0
         if self._tail:

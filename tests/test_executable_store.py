@@ -149,7 +149,7 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
         runs.append((out.stdout, json.loads((tmp_path / f"{i}.json").read_text())))
     assert "loaded from the executable store" not in runs[0][0] and "loaded from the executable store" in runs[1][0]
     first, second = (r[1]["timing"]["compile_split"] for r in runs)
-    programs = ("starts", "init", "head", "physics", "last")  # the queue's, the env's step split at its stages
+    programs = ("starts", "first", "physics", "turn")  # the queue's, the env's step split at its stages
     assert {k.rsplit("_", 1)[0] for k in first} == set(programs) and "trace" not in first
     assert all(first[f"{p}_trace"] > 0.0 and f"{p}_store" in first for p in programs)
     assert all(second[f"{p}_{s}"] == 0.0 for p in programs for s in ("trace", "lower", "xla"))

@@ -205,8 +205,7 @@ class _StagedEnv(_Env):
 def _driven(env, slots, n, tail_slots=0, refills=None):
     """`queue_loop`'s functions, each jitted apart, driven from the host (as the evaluator runs them)."""
     loop = rollout.queue_loop(env, _sized_policy(), slots, 1000, refills_per_step=refills, tail_slots=tail_slots)
-    loop = rollout.QueueLoop(jax.jit(loop.init), jax.jit(loop.head), tuple(map(jax.jit, loop.stages)),
-                             jax.jit(loop.last))
+    loop = rollout.QueueLoop(jax.jit(loop.first), tuple(map(jax.jit, loop.stages)), jax.jit(loop.turn))
     return lambda starts: rollout.drive_queue(loop, None, starts, n)
 
 
@@ -231,15 +230,15 @@ def test_a_round_past_the_end_changes_nothing(case):
     carry as it was, at the queue's end as at the loop bound with episodes still running."""
     keys, task_ids, *_ = case
     starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
+    n = jnp.int32(N_EPISODES)
     for bound in (1000, 6):
         loop = rollout.queue_loop(_StagedEnv(), _sized_policy(), 4, bound)
-        n = jnp.int32(N_EPISODES)
-        c, alive = jax.jit(loop.init)(None, starts, n), True
+        first, middle, turn = jax.jit(loop.first), jax.jit(loop.stages[0]), jax.jit(loop.turn)
+        c, x, go = first(None, starts, n)
+        alive = True
         while alive:
-            c, x, go = jax.jit(loop.head)(None, c, starts, n)
-            c, alive = jax.jit(loop.last)(c, jax.jit(loop.stages[0])(c, x), go, n)
-        c2, x, go = jax.jit(loop.head)(None, c, starts, n)
-        c2, _ = jax.jit(loop.last)(c2, jax.jit(loop.stages[0])(c2, x), go, n)
+            c, x, go, alive = turn(None, c, middle(c, x), go, starts, n)
+        c2, *_ = turn(None, c, middle(c, x), go, starts, n)
         assert not bool(go)
         jax.tree.map(np.testing.assert_array_equal, c, c2)
         assert (int(c[0]) == 6) == (bound == 6) and (int(jnp.sum(c[-1].steps > 0)) < N_EPISODES) == (bound == 6)
