@@ -13,6 +13,7 @@ same number of episodes each (the evaluator's fixed initial states pair them).
 
 from __future__ import annotations
 
+import gzip
 import json
 from pathlib import Path
 
@@ -26,10 +27,12 @@ flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the 
 
 
 def load(path: str) -> dict:
+    """An evaluate result file, gzipped (`.json.gz`) or not."""
     try:
-        d = json.loads(Path(path).read_text())
+        raw = Path(path).read_bytes()
+        d = json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
         d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
-    except (OSError, json.JSONDecodeError, KeyError, TypeError) as e:
+    except (OSError, EOFError, json.JSONDecodeError, KeyError, TypeError) as e:
         raise ValueError(f"{path}: not an experiments.evaluate result ({type(e).__name__}: {e})") from e
     return d
 

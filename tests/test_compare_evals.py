@@ -1,5 +1,6 @@
 """experiments.compare_evals: paired success counts and the success guard."""
 
+import gzip
 import json
 
 import pytest
@@ -51,3 +52,10 @@ def test_unpaired_evaluations_and_bad_files_are_refused(tmp_path):
     bad.write_text(json.dumps({"summary": {}}))
     with pytest.raises(ValueError, match="not an experiments.evaluate result"):
         compare_evals.load(str(bad))
+
+
+def test_a_gzipped_result_loads_as_the_plain_one(tmp_path):
+    plain, packed = tmp_path / "e.json", tmp_path / "e.json.gz"
+    plain.write_text(json.dumps(BASE))
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    assert compare_evals.load(str(packed)) == compare_evals.load(str(plain)) == BASE
