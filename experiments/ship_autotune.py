@@ -1,6 +1,6 @@
 """Makes the XLA autotuning results shipped beside the checkpoints (`checkpoints/xla_autotune.pbtxt`).
 
-  python -m experiments.ship_autotune --methods=ar,expert,heisd --suites=all --episodes=50 --num_envs=1000
+  python -m experiments.ship_autotune --methods=ar,expert,heisd --suites=all --episodes=50 [--num_envs=N] [--extend]
 
 Compiles each method's evaluation rollout (`experiments.evaluate --compile_only`, one child
 process each, a fresh compilation cache so nothing is skipped), every child loading the
@@ -32,7 +32,8 @@ FLAGS = flags.FLAGS
 flags.DEFINE_list("methods", ["ar", "expert", "heisd"], f"Methods whose rollouts to compile, of {sorted(methods.METHODS)}.")
 flags.DEFINE_string("suites", "all", "As experiments.evaluate's --suites.")
 flags.DEFINE_integer("episodes", 50, "As experiments.evaluate's --episodes.")
-flags.DEFINE_integer("num_envs", 1000, "As experiments.evaluate's --num_envs (the programs' batch size).")
+flags.DEFINE_integer("num_envs", 0, "As experiments.evaluate's --num_envs (the programs' batch size; 0: its default).",
+                     lower_bound=0)
 flags.DEFINE_bool("extend", False, "Start from the shipped entries (another GPU's, other batch sizes') instead of none.")
 flags.DEFINE_string("out", str(_xla.SHIPPED_AUTOTUNE), "The results file (XLA text proto); its record is OUT with .json.")
 
