@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import functools
 import time
 from typing import Any, Callable, Collection, NamedTuple, Sequence
 
@@ -139,9 +140,10 @@ class BatchRollout:
 
             self._starts = jax.jit(starts, out_shardings=sharding.replicated(self.mesh))
             loop = rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain, tail_slots=tail_envs)
-            # the carry is donated: each round updates it in place
-            self._loop = rollout.QueueLoop(jax.jit(loop.first), tuple(map(jax.jit, loop.stages)),
-                                           jax.jit(loop.turn, donate_argnums=1))
+            # the carry is donated: each round updates it in place; unused inputs are kept, so a
+            # call hands over its arguments as they are (a pruned input costs every call more)
+            jit = functools.partial(jax.jit, keep_unused=True)
+            self._loop = rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)), jit(loop.turn, donate_argnums=1))
             self._stage_names = tuple(getattr(f, "__name__", f"stage{i + 1}") for i, f in
                                       enumerate(getattr(env, "step_stages", ())[1:-1]))
 
