@@ -206,8 +206,7 @@ class BatchRollout:
             return staged[part].out_info
 
         starts = lowered("starts", self._starts, self._starts_inputs(inputs))
-        carry, x0, go = lowered("first", self._loop.first, (params, starts, n_valid))
-        x = x0
+        carry, x, go = lowered("first", self._loop.first, (params, starts, n_valid))
         for name, stage in zip(self._stage_names, self._loop.stages):
             x = lowered(name, stage, (carry, x))
         lowered("turn", self._loop.turn, (params, carry, x, go, starts, n_valid))
