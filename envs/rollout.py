@@ -315,13 +315,13 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
     env's step splits at `env.step_stages` where it has them (else one stage, `env.step`)."""
     s = num_slots
     _check_tail(s, tail_slots)
-    batched = [jax.vmap(f) for f in getattr(env, "step_stages", (env.step,))]
+    stages = getattr(env, "step_stages", (env.step,))
+    batched = [jax.vmap(f) for f in stages]
 
     def kept(go, new, old):  # new where the round runs, else old
         return jax.tree.map(lambda n, o: jnp.where(go, n, o), new, old)
 
-    def head(pol, c, starts, n_valid):  # refill, act, stage 0
-        go = _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c)
+    def head(pol, c, starts, n_valid, go):  # refill, act, stage 0; go: whether the loop goes on
         refill, _ = _queue_refill(pol, starts, n_valid, s, refills_per_step)
         c = refill(c, go)  # takes nothing unless a slot is free and an episode pending
         acted, action = _queue_act(pol, c)
@@ -331,19 +331,24 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
     def first(params, starts, n_valid):
         pol = dataclasses.replace(policy, params=params)
         fill, _ = _queue_refill(pol, starts, n_valid, s, s)
-        return head(pol, fill(_queue_carry(pol, starts, s, constrain)), starts, n_valid)
+        c = fill(_queue_carry(pol, starts, s, constrain))
+        return head(pol, c, starts, n_valid, _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c))
 
-    def middle(fn):
-        return lambda c, x: constrain(fn(c[4], x), s)
+    def middle(fn, name):
+        def stage(c, x):
+            return constrain(fn(c[4], x), s)
+        stage.__name__ = name  # the env's stage's (a program's name in the evaluator)
+        return stage
 
     def turn(params, c, x, go, starts, n_valid):  # the last stage, outcomes; then the next head
         n_queue = starts.act_keys.shape[0]
         state = kept(go, batched[-1](c[4], x) if len(batched) > 1 else x, c[4])
         c = _queue_record(n_queue, c, state, count=go.astype(jnp.int32))
         alive = _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
-        return *head(dataclasses.replace(policy, params=params), c, starts, n_valid), alive
+        return *head(dataclasses.replace(policy, params=params), c, starts, n_valid, alive), alive
 
-    return QueueLoop(first=first, stages=tuple(middle(f) for f in batched[1:-1]), turn=turn)
+    names = [getattr(f, "__name__", f"stage{i}") for i, f in enumerate(stages)]
+    return QueueLoop(first=first, stages=tuple(middle(f, n) for f, n in zip(batched[1:-1], names[1:-1])), turn=turn)
 
 
 def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray) -> tuple:

@@ -55,8 +55,8 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
-        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs or ev.default_num_envs(), refill=FLAGS.refill,
-                            tail_envs=FLAGS.tail_envs)
+        cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs or ev.default_num_envs(),
+                            refill=FLAGS.refill, tail_envs=FLAGS.tail_envs)
         for n in filter(None, (cfg.num_envs, cfg.tail_envs)):  # the tail's batch too, if any
             sharding.check_batch(n, sharding.env_mesh())
     except ValueError as e:

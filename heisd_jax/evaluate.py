@@ -144,8 +144,7 @@ class BatchRollout:
             # call hands over its arguments as they are (a pruned input costs every call more)
             jit = functools.partial(jax.jit, keep_unused=True)
             self._loop = rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)), jit(loop.turn, donate_argnums=1))
-            self._stage_names = tuple(getattr(f, "__name__", f"stage{i + 1}") for i, f in
-                                      enumerate(getattr(env, "step_stages", ())[1:-1]))
+            self._stage_names = tuple(f.__name__ for f in loop.stages)
 
             if tail_envs:
                 def tail(params, carry, n_valid):

@@ -108,7 +108,8 @@ class VLAConfig:
 # every product (TF32, or bfloat16 inputs), float32 accumulation: tensor-core speed with the
 # same kind of kernel at every shape. "tf32x3", "bf16x3", "bf16x6", "bf16x9": each input split
 # into a sum of 2 or 3 such terms and 3, 6 or 9 tensor-core products of them summed, close to
-# float32's rounding at a fraction of its cost on GPUs (arXiv 1904.06376).
+# float32's rounding (arXiv 1904.06376); on an H100 none is both faster than "float32" and
+# batch-invariant (BENCHMARKS.md).
 _PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32",
                        "tf32x3": "TF32_TF32_F32_X3", "bf16x3": "BF16_BF16_F32_X3", "bf16x6": "BF16_BF16_F32_X6",
                        "bf16x9": "BF16_BF16_F32_X9"}
