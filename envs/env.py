@@ -195,14 +195,20 @@ class TabletopEnv:
         of the action, the last returning the new state: the servos' targets (IK), the
         physics substeps, then the derived state and observation (camera). A rollout can
         compile each as a program of its own (XLA compiles the programs in parallel, each
-        on one thread); `step` runs the same code in one program."""
-        def staged(fn):
+        on one thread); `step` runs the same code in one program. The physics stage runs its
+        solver's loop as `physics.own_program` has it (the same results either way)."""
+        own = physics.own_program(self.config.physics)
+
+        def physics_(state, controls):
+            return self._physics(state, controls, own)
+
+        def staged(fn, name):
             def stage(state, x):
                 with physics.summation_order(self.config.physics):
                     return fn(state, x)
-            stage.__name__ = fn.__name__.lstrip("_")  # controls, physics, finish
+            stage.__name__ = name
             return stage
-        return tuple(staged(fn) for fn in (self._controls, self._physics, self._finish))
+        return (staged(self._controls, "controls"), staged(physics_, "physics"), staged(self._finish, "finish"))
 
     def _controls(self, state: EnvState, action: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
         """(the servos' targets [N_SUBSTEPS, nu] of each substep, whether the action was invalid)."""
@@ -215,12 +221,15 @@ class TabletopEnv:
         frac = (jnp.arange(1, scene.N_SUBSTEPS + 1) / scene.N_SUBSTEPS)[:, None]
         return start + (target - start) * jnp.where(jnp.arange(target.shape[0]) < 7, frac, 1.0), invalid
 
-    def _physics(self, state: EnvState, controls: tuple[jnp.ndarray, jnp.ndarray]) -> tuple[mjx.Data, jnp.ndarray]:
-        """(the physics state after the substeps, whether the action was invalid)."""
+    def _physics(self, state: EnvState, controls: tuple[jnp.ndarray, jnp.ndarray],
+                 cfg: physics.PhysicsConfig | None = None) -> tuple[mjx.Data, jnp.ndarray]:
+        """(the physics state after the substeps, whether the action was invalid), under `cfg`
+        (default the env's physics)."""
         ramp, invalid = controls
+        cfg = cfg or self.config.physics
 
         def substep(d, ctrl):
-            return physics.step(self.model, d.replace(ctrl=ctrl), self.config.physics), None
+            return physics.step(self.model, d.replace(ctrl=ctrl), cfg), None
 
         data, _ = jax.lax.scan(substep, state.data, ramp)
         return data, invalid

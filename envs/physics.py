@@ -74,11 +74,16 @@ class PhysicsConfig:
     # (scene.SOLVER_TOLERANCE says why 1e-5; 1e-8, MuJoCo's default, reproduces older results).
     tolerance: float = scene.SOLVER_TOLERANCE
     # True: the solver's loop as a scan of solver_iterations steps, each env's update masked once
-    # it has converged (MJX's own stopping rule, so the same iterates), instead of MJX's while
-    # loop, whose condition a GPU reads back to the host every iteration. It runs every iteration
-    # for every env: faster where the batch's solves take most of them (in grasps), slower where
-    # they end in one or two (docs/benchmark.md); so off.
-    static_solver_loop: bool = False
+    # it has converged (MJX's own stopping rule, so the same iterates and the same results),
+    # instead of MJX's while loop (False), whose condition a GPU reads back to the host every
+    # iteration, so a program holding it keeps its caller waiting until it ends. The scan runs
+    # every iteration for every env (most converge in one or two): inside one program the
+    # while loop is faster, and on a CPU always. None (the default): the scan for physics run
+    # as a program of its own on a GPU (`own_program`: `TabletopEnv.step_stages`, which the
+    # evaluator's queue calls step by step from the host, so the host's next calls overlap
+    # the physics instead of waiting for it), else the while loop. docs/benchmark.md has the
+    # measurements.
+    static_solver_loop: bool | None = None
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
@@ -107,13 +112,15 @@ def parse(spec: str) -> PhysicsConfig:
         if not sep or name not in fields:
             raise ValueError(f"physics setting {item!r}: expected field=value with a field among {', '.join(fields)}")
         default = getattr(PhysicsConfig, name)
+        value = value.strip()
+        if default is None or isinstance(default, bool):  # a bool, or a bool or None (its default)
+            words = {"true": True, "1": True, "false": False, "0": False} | ({"none": None} if default is None else {})
+            if value.lower() not in words:
+                raise ValueError(f"physics setting {item!r}: {name} takes {', '.join(words)}")
+            kwargs[name] = words[value.lower()]
+            continue
         try:
-            if isinstance(default, bool):
-                if value.strip().lower() not in ("true", "false", "1", "0"):
-                    raise ValueError(value)
-                kwargs[name] = value.strip().lower() in ("true", "1")
-            else:
-                kwargs[name] = type(default)(value.strip())
+            kwargs[name] = type(default)(value)
         except ValueError:
             raise ValueError(f"physics setting {item!r}: {name} takes a {type(default).__name__}") from None
     return PhysicsConfig(**kwargs)
@@ -266,11 +273,21 @@ def _static_while_loop(trip_count: int):
     return while_loop
 
 
+def own_program(cfg: PhysicsConfig) -> PhysicsConfig:
+    """`cfg` for physics steps compiled as a program of their own, which a host calls control
+    step by control step: `static_solver_loop` None becomes True on a GPU (a while loop there
+    would hold the host until it ends), False on a CPU."""
+    if cfg.static_solver_loop is not None:
+        return cfg
+    return dataclasses.replace(cfg, static_solver_loop=jax.default_backend() == "gpu")
+
+
 @contextlib.contextmanager
 def solver_loop(m: mjx.Model, cfg: PhysicsConfig = PhysicsConfig()):
-    """While a physics step is traced inside it (with `cfg.static_solver_loop`), the while loop
-    of MJX's constraint solver, the only one in a step (mujoco-mjx 3.17.0: `solver.solve`), runs
-    as `_static_while_loop(m.opt.iterations)`, which that loop's own cap already bounds."""
+    """While a physics step is traced inside it (with `cfg.static_solver_loop` True; None counts
+    as False here, see `own_program`), the while loop of MJX's constraint solver, the only one
+    in a step (mujoco-mjx 3.17.0: `solver.solve`), runs as `_static_while_loop(m.opt.iterations)`,
+    which that loop's own cap already bounds."""
     if not cfg.static_solver_loop:
         yield
         return

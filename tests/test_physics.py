@@ -136,8 +136,13 @@ def test_physics_settings_parse_from_text_and_back():
     assert physics.parse("") == physics.PhysicsConfig() and physics.describe(physics.PhysicsConfig()) == ""
     assert physics.parse(" max_contacts = 16 , clamp_aware_implicit=true") == physics.PhysicsConfig(
         max_contacts=16, clamp_aware_implicit=True)
+    for text, value in [("true", True), ("0", False), ("None", None)]:
+        assert physics.parse(f"static_solver_loop={text}").static_solver_loop is value
+    assert physics.parse(physics.describe(physics.PhysicsConfig(static_solver_loop=False))).static_solver_loop is False
     for bad, message in [("contacts=3", "a field among integrator"), ("max_contacts", "a field among"),
-                         ("force_limits=yes", "takes a bool"), ("integrator=leapfrog", "unknown integrator"),
+                         ("force_limits=yes", "takes true, 1, false, 0"),
+                         ("static_solver_loop=auto", "takes true, 1, false, 0, none"),
+                         ("integrator=leapfrog", "unknown integrator"),
                          ("solver=pgs", "valid: newton, cg"), ("tolerance=-1", "tolerance must be >= 0")]:
         with pytest.raises(ValueError, match=message):
             physics.parse(bad)
@@ -178,6 +183,18 @@ def test_static_solver_loop_leaves_no_while_loop_in_the_step_and_the_same_physic
     a, b = _roll(static, state, actions), _roll(looped, state, actions)
     np.testing.assert_allclose(a.data.qpos, b.data.qpos, rtol=0, atol=1e-6)
     np.testing.assert_allclose(a.data.qvel, b.data.qvel, rtol=0, atol=1e-4)
+
+
+def test_physics_as_its_own_program_scans_the_solver_loop_on_a_gpu_unless_set(envs_and_state, monkeypatch):
+    env, _, state = envs_and_state
+    controls, physics_stage, _ = env.step_stages
+    x = controls(state, jnp.full((7,), 0.3))
+    assert _primitives("while", physics_stage, state, x) == {"solver.py": 1}  # a CPU: MJX's while loop
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert not _primitives("while", env.step_stages[1], state, x)
+    assert _primitives("while", env.step, state, jnp.full((7,), 0.3)) == {"solver.py": 1}  # inside one program
+    kept = TabletopEnv(env.tasks, EnvConfig(render=False, physics=physics.PhysicsConfig(static_solver_loop=False)))
+    assert _primitives("while", kept.step_stages[1], state, x) == {"solver.py": 1}
 
 
 def test_solver_iterations_count_the_solver_loop_capped_and_cut_short_by_the_tolerance(envs_and_state):
