@@ -303,8 +303,10 @@ class QueueLoop(NamedTuple):
     end (`go` False) leaves the carry as it was, so a host may read `alive` a round late
     (`drive_queue`). No program holds a conditional, which on a GPU would hold the host until
     the device reaches it. With `tail_slots`, `alive` turns False where the tail starts, and
-    the carry is `run_queue_tail`'s."""
-    first: Callable[[Any, QueueStarts, jnp.ndarray], tuple]
+    the carry is `run_queue_tail`'s, and the queue loop of `tail_slots` slots (no tail of its
+    own) goes on from it: its `first(params, starts, n_valid, carry)` gathers the running slots
+    (`run_queue_tail` as programs; its refills take nothing, the queue being empty)."""
+    first: Callable[..., tuple]
     stages: tuple[Callable[[tuple, Any], Any], ...]
     turn: Callable[[Any, tuple, Any, jnp.ndarray, QueueStarts, jnp.ndarray], tuple]
 
@@ -328,10 +330,13 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
         c = c[:5] + kept(go, acted[5:8], c[5:8]) + c[8:]  # the policy's state, keys, totals
         return _constrain_carry(c, constrain, s), constrain(batched[0](c[4], action), s), go
 
-    def first(params, starts, n_valid):
+    def first(params, starts, n_valid, carry=None):
         pol = dataclasses.replace(policy, params=params)
-        fill, _ = _queue_refill(pol, starts, n_valid, s, s)
-        c = fill(_queue_carry(pol, starts, s, constrain))
+        if carry is None:
+            fill, _ = _queue_refill(pol, starts, n_valid, s, s)
+            c = fill(_queue_carry(pol, starts, s, constrain))
+        else:  # a tail: the head's carry where it stopped, its running slots gathered into s
+            c = _gather_tail(pol, carry, s, constrain)
         return head(pol, c, starts, n_valid, _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c))
 
     def middle(fn, name):
@@ -351,11 +356,13 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
     return QueueLoop(first=first, stages=tuple(middle(f, n) for f, n in zip(batched[1:-1], names[1:-1])), turn=turn)
 
 
-def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray) -> tuple:
+def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, carry: tuple | None = None
+                ) -> tuple:
     """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
     (or where its tail starts); returns the final carry. Each round's `alive` is read after
-    the next round is queued, so the device is not left waiting for the host."""
-    c, x, go = loop.first(params, starts, n_valid)
+    the next round is queued, so the device is not left waiting for the host. `carry`: a
+    tail's loop goes on from the head's final carry."""
+    c, x, go = loop.first(params, starts, n_valid) if carry is None else loop.first(params, starts, n_valid, carry)
     alive = None
     while True:
         for stage in loop.stages:
@@ -437,20 +444,26 @@ def run_queue_tail(env: TabletopEnv, policy: Policy, carry: tuple, n_valid: jnp.
     at most `tail_slots` slots running), those slots gathered into a batch of `tail_slots`
     and stepped until every episode has ended. As `run_queue` with `tail_slots` returns, in a
     program of its own, so that it can compile while the head runs."""
-    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = carry
-    n_queue = jax.tree.leaves(results)[0].shape[0]
+    n_queue = jax.tree.leaves(carry[-1])[0].shape[0]
     step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue)
-    keep = jnp.argsort(slot_ep == n_queue, stable=True)[:tail_slots]  # running slots first, then finished ones
-    pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row_leaves(policy, state))
-    tail = constrain(jax.tree.map(lambda x: x[keep], (slot_ep, state)) + (pstate,) +
-                     jax.tree.map(lambda x: x[keep], (act_keys, totals)), tail_slots)
 
     def tail_body(c):
         t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = step(c)
         return t, blank, next_ep, *constrain((slot_ep, state, pstate, act_keys, totals), tail_slots), results
 
-    c = jax.lax.while_loop(cond, tail_body, (t, blank, next_ep, *tail, results))
+    c = jax.lax.while_loop(cond, tail_body, _gather_tail(policy, carry, tail_slots, constrain))
     return c[-1], c[0]
+
+
+def _gather_tail(policy: Policy, carry: tuple, tail_slots: int, constrain: Callable[[Any, int], Any]) -> tuple:
+    """A queue's carry where its tail starts, its running slots gathered into `tail_slots`."""
+    t, blank, next_ep, slot_ep, state, pstate, act_keys, totals, results = carry
+    n_queue = jax.tree.leaves(results)[0].shape[0]
+    keep = jnp.argsort(slot_ep == n_queue, stable=True)[:tail_slots]  # running slots first, then finished ones
+    pstate = jax.tree.map(lambda x, row: x[keep] if row else x, pstate, per_row_leaves(policy, state))
+    tail = constrain(jax.tree.map(lambda x: x[keep], (slot_ep, state)) + (pstate,) +
+                     jax.tree.map(lambda x: x[keep], (act_keys, totals)), tail_slots)
+    return t, blank, next_ep, *tail, results
 
 
 def _queue_act(policy: Policy, c: tuple) -> tuple[tuple, jnp.ndarray]:

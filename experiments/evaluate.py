@@ -168,17 +168,20 @@ def _split_text(split: dict[str, float]) -> str:
                 f"{split[f'{pre}xla']:.1f}s (or its load from the compilation cache)" +
                 (f" + store {split[f'{pre}store']:.1f}s (keying and saving)" if f"{pre}store" in split else ""))
 
+    def programs(tail: bool) -> list[str]:
+        return [k[:-len("_trace")] for k in split if k.endswith("_trace") and k.startswith("tail_") == tail]
+
     if "trace" in split:
-        text = f"{split['total']:.1f}s: {stages('')}"
-    else:
-        parts = [k[:-len("_trace")] for k in split if k.endswith("_trace") and k != "tail_trace"]
-        total = {s: sum(split.get(f"{p}_{s}", 0.0) for p in parts) for s in ("trace", "lower", "xla")}
-        text = (f"{split['total']:.1f}s wall for {len(parts)} programs, their XLA side by side (trace "
-                f"{total['trace']:.1f}s + lower {total['lower']:.1f}s in turn, XLA {total['xla']:.1f}s in all): "
-                + "; ".join(f"{p}: {stages(p + '_')}" for p in parts))
-    if "tail_trace" in split:
-        text += (f"; the tail's program, beside the head's run: {stages('tail_')}, waited for "
-                 f"{split.get('tail_wait', 0.0):.1f}s")
+        return f"{split['total']:.1f}s: {stages('')}"
+    parts = programs(False)
+    total = {s: sum(split.get(f"{p}_{s}", 0.0) for p in parts) for s in ("trace", "lower", "xla")}
+    text = (f"{split['total']:.1f}s wall for {len(parts)} programs, their XLA side by side (trace "
+            f"{total['trace']:.1f}s + lower {total['lower']:.1f}s in turn, XLA {total['xla']:.1f}s in all): "
+            + "; ".join(f"{p}: {stages(p + '_')}" for p in parts))
+    if programs(True):
+        text += ("; the tail's programs, beside the head's run: " +
+                 "; ".join(f"{p}: {stages(p + '_')}" for p in programs(True)) +
+                 f"; waited for {split.get('tail_wait', 0.0):.1f}s")
     return text
 
 

@@ -103,8 +103,9 @@ class BatchRollout:
     `store`: compiled programs are loaded from it, and stored in it when compiled, where the
     backend supports it (`executable_store.supported`); the key adds this rollout's env, policy
     and sizes to the store's identity. `tail_envs` (with a queue): the loop stops where the
-    tail starts, and the tail (`rollout.run_queue_tail`) is a program of its own, compiled in
-    the background while the head runs, so that its compile adds to the wall time only where it
+    tail starts, and the tail goes on as a queue loop of `tail_envs` slots from the head's
+    carry (`rollout.queue_loop`: `run_queue_tail` as programs), traced and compiled in the
+    background while the head runs, so that its compile adds to the wall time only where it
     outlasts the head."""
 
     _tail = _starts = _loop = None
@@ -139,31 +140,30 @@ class BatchRollout:
                 return rollout.queue_starts(env, k, t, seed_in)
 
             self._starts = jax.jit(starts, out_shardings=sharding.replicated(self.mesh))
-            loop = rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain, tail_slots=tail_envs)
             # the carry is donated: each round updates it in place; unused inputs are kept, so a
             # call hands over its arguments as they are (a pruned input costs every call more)
             jit = functools.partial(jax.jit, keep_unused=True)
-            self._loop = rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)), jit(loop.turn, donate_argnums=1))
-            self._stage_names = tuple(f.__name__ for f in loop.stages)
+
+            def jitted(loop):
+                return rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)), jit(loop.turn, donate_argnums=1))
+            self._loop = jitted(rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain,
+                                                   tail_slots=tail_envs))
 
             if tail_envs:
-                def tail(params, carry, n_valid):
-                    return rollout.run_queue_tail(env, dataclasses.replace(policy, params=params), carry, n_valid,
-                                                  bound, tail_envs, constrain)
-                self._tail = jax.jit(tail)
+                self._tail = jitted(rollout.queue_loop(env, policy, tail_envs, bound, constrain=constrain))
         self._compiled, self.compile_seconds = None, 0.0
         # seconds by stage: trace (Python), lower (to MLIR), xla (or its cache load); store
         # (keying, and loading or saving the executable) where a store is used. A static batch:
         # its one program's. A queue: each program's, as `{program}_{stage}`, and compile_seconds
-        # the wall time (the XLA compiles overlap). tail_wait, with a tail: how long the run
-        # waited for the tail's program, compiled in the background as the head ran.
+        # the wall time (the XLA compiles overlap); a tail's as `tail_{program}_{stage}`, and
+        # tail_wait: how long the run waited for them, compiled in the background as the head ran.
         self.compile_split: dict[str, float] = {}
         self.store = store if store is not None and executable_store.supported() else None
         self._identity = {"caller": None if store is None else store.identity, "env": env.config, "tasks": env.tasks,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
                           "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
                           "devices": [d.id for d in self.mesh.devices.flat]}
-        self._tail_compiled = self._tail_future = self._starts_compiled = self._carry_info = None
+        self._tail_compiled = self._tail_future = self._starts_compiled = self._carry_info = self._starts_info = None
         self.last_wait = 0.0  # seconds the last call waited for the tail's compile (counted as compile)
 
     def inputs(self, task_ids: np.ndarray, episodes: np.ndarray, n_valid: int | None = None, seed: int = 0) -> tuple:
@@ -197,31 +197,43 @@ class BatchRollout:
             self.compile_seconds = sum(self.compile_split.values())
             return
         t0 = time.perf_counter()
-        params, n_valid = inputs[0], inputs[3]
-        staged = {}
-
-        def lowered(part, fn, args):
-            staged[part] = self._lower(fn, args, part, key_inputs=inputs)
-            return staged[part].out_info
-
-        starts = lowered("starts", self._starts, self._starts_inputs(inputs))
-        carry, x, go = lowered("first", self._loop.first, (params, starts, n_valid))
-        for name, stage in zip(self._stage_names, self._loop.stages):
-            x = lowered(name, stage, (carry, x))
-        lowered("turn", self._loop.turn, (params, carry, x, go, starts, n_valid))
-        # XLA after all the tracing: a compile beside the tracing slows it (on a GPU host
-        # XLA's code generation takes every core), and the largest compile outlasts it anyway
-        futures = {part: _COMPILER.submit(self._finish, st) for part, st in staged.items()}
-        done, self.compile_split = {}, {}
-        for part, future in futures.items():
-            done[part], split = future.result()
-            self.compile_split.update({f"{part}_{k}": v for k, v in split.items()})
-        self._starts_compiled = done["starts"]
-        self._compiled = rollout.QueueLoop(done["first"], tuple(done[n] for n in self._stage_names), done["turn"])
-        self._carry_info = carry
+        staged = {"starts": self._lower(self._starts, self._starts_inputs(inputs), "starts", key_inputs=inputs)}
+        self._starts_info = staged["starts"].out_info
+        self._carry_info = self._lower_loop(self._loop, "", inputs, (), staged)
+        done, self.compile_split = self._finish_loop(self._loop, "", staged)
+        self._starts_compiled, self._compiled = done["starts"], done["loop"]
         self.compile_seconds = time.perf_counter() - t0
         if self._tail:
             self._tail_future = _COMPILER.submit(self._compile_tail, inputs)
+
+    def _lower_loop(self, loop: rollout.QueueLoop, prefix: str, inputs: tuple, carry: tuple, staged: dict):
+        """Traces and lowers `loop`'s programs into `staged` (parts `{prefix}first`, each
+        stage's name, `{prefix}turn`), `first` given `carry` (a tail's: the head's final carry;
+        else none); returns the output info of `first`'s carry."""
+        params, n_valid = inputs[0], inputs[3]
+
+        def lowered(part, fn, args):
+            staged[prefix + part] = self._lower(fn, args, prefix + part, key_inputs=inputs)
+            return staged[prefix + part].out_info
+
+        c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry))
+        for stage in loop.stages:
+            x = lowered(stage.__name__, stage, (c, x))
+        lowered("turn", loop.turn, (params, c, x, go, self._starts_info, n_valid))
+        return c
+
+    def _finish_loop(self, loop: rollout.QueueLoop, prefix: str, staged: dict) -> tuple[dict, dict]:
+        """XLA for every program in `staged`, side by side, after all are traced: a compile beside
+        the tracing slows it (on a GPU host XLA's code generation takes every core), and the
+        largest compile outlasts it anyway. Returns ({"loop": `loop` compiled, each other part:
+        its program}, seconds by `{part}_{stage}`)."""
+        futures = {part: _COMPILER.submit(self._finish, st) for part, st in staged.items()}
+        done, split = {}, {}
+        for part, future in futures.items():
+            done[part], secs = future.result()
+            split.update({f"{part}_{k}": v for k, v in secs.items()})
+        programs = [done.pop(prefix + n) for n in ("first", *(f.__name__ for f in loop.stages), "turn")]
+        return {"loop": rollout.QueueLoop(programs[0], tuple(programs[1:-1]), programs[-1]), **done}, split
 
     @staticmethod
     def _starts_inputs(inputs: tuple) -> tuple:
@@ -266,14 +278,17 @@ class BatchRollout:
         return compiled, split
 
     def _compile_tail(self, inputs: tuple):
-        params, *_, n_valid = inputs[:4]
-        return self._compile(self._tail, (params, self._carry_info, n_valid), "tail", key_inputs=inputs)
+        """The tail's programs, traced in turn in this (background) thread, then compiled side by side."""
+        staged = {}
+        self._lower_loop(self._tail, "tail_", inputs, (self._carry_info,), staged)
+        done, split = self._finish_loop(self._tail, "tail_", staged)
+        return done["loop"], split
 
     def wait_compiled(self) -> None:
         """Waits for a tail's background compile; its seconds join compile_split as `tail_*`."""
         if self._tail_compiled is None and self._tail_future is not None:
             self._tail_compiled, split = self._tail_future.result()
-            self.compile_split.update({f"tail_{k}": v for k, v in split.items()})
+            self.compile_split.update(split)
 
     def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
         """Host copies of (per-episode results [queue], control steps the loop ran)."""
@@ -281,8 +296,8 @@ class BatchRollout:
         if self._loop is None:
             return sharding.fetch(self._compiled(*inputs))
         params, n_valid = inputs[0], inputs[3]
-        carry = rollout.drive_queue(self._compiled, params, self._starts_compiled(*self._starts_inputs(inputs)),
-                                    n_valid)
+        starts = self._starts_compiled(*self._starts_inputs(inputs))
+        carry = rollout.drive_queue(self._compiled, params, starts, n_valid)
         if self._tail is None:
             return sharding.fetch((carry[-1], carry[0]))
         jax.block_until_ready(carry)
@@ -293,7 +308,8 @@ class BatchRollout:
         if waited:  # what the tail's compile added to the wall time
             self.compile_split["tail_wait"] = self.last_wait
             self.compile_seconds += self.last_wait
-        return sharding.fetch(self._tail_compiled(params, carry, n_valid))
+        carry = rollout.drive_queue(self._tail_compiled, params, starts, n_valid, carry=carry)
+        return sharding.fetch((carry[-1], carry[0]))
 
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,

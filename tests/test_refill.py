@@ -246,13 +246,21 @@ def test_a_round_past_the_end_changes_nothing(case):
 
 def test_a_host_driven_loop_stops_where_the_tail_starts(case):
     """With `tail_slots`, the driven loop's carry is the one-program head's, which
-    `run_queue_tail` finishes as one program with the tail does."""
+    `run_queue_tail`, or a driven loop of the tail's slots, finishes as one program with the
+    tail does."""
     keys, task_ids, *_ = case
     n = jnp.int32(N_EPISODES)
     starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
     one = jax.jit(lambda st, n: rollout.run_queue(_Env(), _sized_policy(), None, None, n, 4, 1000, tail_slots=2,
                                                   starts=st))
     tail = jax.jit(lambda c, n: rollout.run_queue_tail(_Env(), _sized_policy(), c, n, 1000, 2))
-    (out, steps), (out2, steps2) = one(starts, n), tail(_driven(_StagedEnv(), 4, n, tail_slots=2)(starts), n)
+    head = _driven(_StagedEnv(), 4, n, tail_slots=2)(starts)
+    (out, steps), (out2, steps2) = one(starts, n), tail(head, n)
     assert int(steps) == int(steps2)
     jax.tree.map(np.testing.assert_array_equal, out, out2)
+    # the tail as programs driven from the host too: a queue loop of 2 slots from the head's carry
+    loop = rollout.queue_loop(_StagedEnv(), _sized_policy(), 2, 1000)
+    loop = rollout.QueueLoop(jax.jit(loop.first), tuple(map(jax.jit, loop.stages)), jax.jit(loop.turn))
+    c = rollout.drive_queue(loop, None, starts, n, carry=head)
+    assert int(c[0]) == int(steps)
+    jax.tree.map(np.testing.assert_array_equal, out, c[-1])
