@@ -291,14 +291,16 @@ class QueueLoop(NamedTuple):
     (XLA compiles them in parallel), the env's step split at its `step_stages`:
 
         carry, x, go = first(params, starts, n_valid)   # every slot takes an episode; stage 0
-        repeat:  x = stage(carry, x) for each middle stage                       # e.g. the physics
+        repeat:  x = stage(queue_states(carry), x) for each middle stage       # e.g. the physics
                  carry, x, go, alive = turn(params, carry, x, go, starts, n_valid)
         until alive is False; then carry[-1] holds the results, carry[0] the control steps.
 
     A round is one control step of `run_queue`'s loop, the same code, every episode ending as
     there: `turn` ends one control step (the last stage, the outcomes of the episodes that
     ended) and begins the next (refill, the policy's action, stage 0), so a round is the
-    middle stages and one `turn`. The slots are filled at once rather than `refills_per_step`
+    middle stages and one `turn`. A middle stage reads only the slots' env states, so its
+    program is the env's alone, whichever policy runs (the evaluator shares it across
+    methods). The slots are filled at once rather than `refills_per_step`
     per iteration (the episodes do not depend on when they start). A round after the loop's
     end (`go` False) leaves the carry as it was, so a host may read `alive` a round late
     (`drive_queue`). No program holds a conditional, which on a GPU would hold the host until
@@ -307,7 +309,7 @@ class QueueLoop(NamedTuple):
     own) goes on from it: its `first(params, starts, n_valid, carry)` gathers the running slots
     (`run_queue_tail` as programs; its refills take nothing, the queue being empty)."""
     first: Callable[..., tuple]
-    stages: tuple[Callable[[tuple, Any], Any], ...]
+    stages: tuple[Callable[[EnvState, Any], Any], ...]
     turn: Callable[[Any, tuple, Any, jnp.ndarray, QueueStarts, jnp.ndarray], tuple]
 
 
@@ -340,8 +342,8 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
         return head(pol, c, starts, n_valid, _queue_cond(max_steps, n_valid, starts.act_keys.shape[0], tail_slots)(c))
 
     def middle(fn, name):
-        def stage(c, x):
-            return constrain(fn(c[4], x), s)
+        def stage(state, x):
+            return constrain(fn(state, x), s)
         stage.__name__ = name  # the env's stage's (a program's name in the evaluator)
         return stage
 
@@ -356,6 +358,11 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
     return QueueLoop(first=first, stages=tuple(middle(f, n) for f, n in zip(batched[1:-1], names[1:-1])), turn=turn)
 
 
+def queue_states(carry: tuple) -> EnvState:
+    """The env states of a queue loop's slots, in its carry."""
+    return carry[4]
+
+
 def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, carry: tuple | None = None
                 ) -> tuple:
     """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
@@ -366,7 +373,7 @@ def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.
     alive = None
     while True:
         for stage in loop.stages:
-            x = stage(c, x)
+            x = stage(queue_states(c), x)
         c, x, go, now = loop.turn(params, c, x, go, starts, n_valid)
         if alive is not None and not bool(alive):
             return c
@@ -442,8 +449,9 @@ def run_queue_tail(env: TabletopEnv, policy: Policy, carry: tuple, n_valid: jnp.
                    ) -> tuple[EpisodeResults, jnp.ndarray]:
     """The queue's tail: from the carry `run_queue(..., split=True)` returns (the queue empty,
     at most `tail_slots` slots running), those slots gathered into a batch of `tail_slots`
-    and stepped until every episode has ended. As `run_queue` with `tail_slots` returns, in a
-    program of its own, so that it can compile while the head runs."""
+    and stepped until every episode has ended, as `run_queue` with `tail_slots` returns (a
+    queue loop of `tail_slots` slots from this carry, `queue_loop`, runs it as programs a host
+    drives)."""
     n_queue = jax.tree.leaves(carry[-1])[0].shape[0]
     step, cond = _queue_step(env, policy, n_queue), _queue_cond(max_steps, n_valid, n_queue)
 

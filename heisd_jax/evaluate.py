@@ -89,6 +89,13 @@ class _Staged(NamedTuple):
         return (self.lowered if self.compiled is None else self.compiled).out_info
 
 
+def _shapes(tree) -> list[jax.ShapeDtypeStruct]:
+    """The shapes and dtypes of `tree`'s leaves, as a store key's inputs: the same whether the
+    tree came from a traced program or a loaded one (their shardings print differently), and
+    without MJX's tree, whose text holds object ids."""
+    return [jax.ShapeDtypeStruct(np.shape(x), x.dtype) for x in jax.tree.leaves(tree)]
+
+
 class BatchRollout:
     """The jitted rollout of `queue` episodes in `num_envs` env slots, sharded over `devices`
     (default: all; the env slots are split, the policy's parameters replicated; one device: a
@@ -159,10 +166,12 @@ class BatchRollout:
         # tail_wait: how long the run waited for them, compiled in the background as the head ran.
         self.compile_split: dict[str, float] = {}
         self.store = store if store is not None and executable_store.supported() else None
-        self._identity = {"caller": None if store is None else store.identity, "env": env.config, "tasks": env.tasks,
+        # what names a program in the store; an env stage's program (the physics) takes only the
+        # slots' env states, so the env, its sharding and the input shapes name it
+        self._env_identity = {"env": env.config, "tasks": env.tasks, "devices": [d.id for d in self.mesh.devices.flat]}
+        self._identity = {**self._env_identity, "caller": None if store is None else store.identity,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
-                          "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps,
-                          "devices": [d.id for d in self.mesh.devices.flat]}
+                          "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps}
         self._tail_compiled = self._tail_future = self._starts_compiled = self._carry_info = self._starts_info = None
         self.last_wait = 0.0  # seconds the last call waited for the tail's compile (counted as compile)
 
@@ -212,14 +221,15 @@ class BatchRollout:
         else none); returns the output info of `first`'s carry."""
         params, n_valid = inputs[0], inputs[3]
 
-        def lowered(part, fn, args):
-            staged[prefix + part] = self._lower(fn, args, prefix + part, key_inputs=inputs)
+        def lowered(part, fn, args, **key):
+            staged[prefix + part] = self._lower(fn, args, prefix + part, **key)
             return staged[prefix + part].out_info
 
-        c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry))
-        for stage in loop.stages:
-            x = lowered(stage.__name__, stage, (c, x))
-        lowered("turn", loop.turn, (params, c, x, go, self._starts_info, n_valid))
+        c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry), key_inputs=inputs)
+        for stage in loop.stages:  # the env's alone: keyed by the env and its inputs, not the policy
+            args = (rollout.queue_states(c), x)
+            x = lowered(stage.__name__, stage, args, identity=self._env_identity, key_inputs=_shapes(args))
+        lowered("turn", loop.turn, (params, c, x, go, self._starts_info, n_valid), key_inputs=inputs)
         return c
 
     def _finish_loop(self, loop: rollout.QueueLoop, prefix: str, staged: dict) -> tuple[dict, dict]:
@@ -245,10 +255,13 @@ class BatchRollout:
         under this rollout's identity, `part` and `key_inputs` (default: `inputs`)."""
         return self._finish(self._lower(fn, inputs, part, key_inputs))
 
-    def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None) -> _Staged:
-        """`fn`'s program for `inputs` loaded from the store, or traced and lowered."""
+    def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None,
+               identity: dict | None = None) -> _Staged:
+        """`fn`'s program for `inputs` loaded from the store, or traced and lowered; stored
+        under `identity` (default this rollout's) and `key_inputs` (default `inputs`)."""
         t0 = time.perf_counter()
-        key = self.store.key({**self._identity, "part": part}, key_inputs or inputs) if self.store else None
+        identity = {**(identity or self._identity), "part": part}
+        key = self.store.key(identity, key_inputs or inputs) if self.store else None
         compiled = self.store.load(key) if key else None
         if compiled is not None:  # no tracing, lowering or XLA
             return _Staged(part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,

@@ -156,6 +156,26 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
     assert runs[0][1]["episodes"] == runs[1][1]["episodes"]
 
 
+@pytest.mark.slow
+def test_the_physics_program_is_shared_by_rollouts_of_other_policies_on_the_same_env(tmp_path):
+    """An env stage's program (the physics) reads only the slots' env states, so a rollout of
+    another policy, stored under another caller, loads it; its own programs it compiles."""
+    from envs import expert, tasks  # noqa: PLC0415
+    from envs.env import EnvConfig, TabletopEnv  # noqa: PLC0415
+    from heisd_jax import evaluate as ev  # noqa: PLC0415
+
+    env = TabletopEnv(tasks.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    splits = []
+    for name in ("expert", "expert, renamed"):
+        rollout = ev.BatchRollout(env, dataclasses.replace(expert.policy(env), name=name), num_envs=2, queue=3,
+                                  store=xs.ExecutableStore(tmp_path, {"method": name}))
+        rollout.compile(rollout.inputs(np.zeros(3, np.int32), np.arange(3)))
+        splits.append(rollout.compile_split)
+    first, second = splits
+    assert first["physics_trace"] > 0.0 and second["physics_trace"] == second["physics_xla"] == 0.0
+    assert all(second[f"{p}_trace"] > 0.0 for p in ("starts", "first", "turn"))
+
+
 def test_the_store_keeps_within_its_size_by_dropping_the_least_recently_used(tmp_path):
     x = np.ones((4, 3), np.float32)
     compiled = xs.compile_storable(jax.jit(_program).trace(x).lower())

@@ -237,8 +237,8 @@ def test_a_round_past_the_end_changes_nothing(case):
         c, x, go = first(None, starts, n)
         alive = True
         while alive:
-            c, x, go, alive = turn(None, c, middle(c, x), go, starts, n)
-        c2, *_ = turn(None, c, middle(c, x), go, starts, n)
+            c, x, go, alive = turn(None, c, middle(rollout.queue_states(c), x), go, starts, n)
+        c2, *_ = turn(None, c, middle(rollout.queue_states(c), x), go, starts, n)
         assert not bool(go)
         jax.tree.map(np.testing.assert_array_equal, c, c2)
         assert (int(c[0]) == 6) == (bound == 6) and (int(jnp.sum(c[-1].steps > 0)) < N_EPISODES) == (bound == 6)
