@@ -152,7 +152,8 @@ class BatchRollout:
             jit = functools.partial(jax.jit, keep_unused=True)
 
             def jitted(loop):
-                return rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)), jit(loop.turn, donate_argnums=1))
+                return rollout.QueueLoop(jit(loop.first), tuple(map(jit, loop.stages)),
+                                         jit(loop.turn, donate_argnums=1))
             self._loop = jitted(rollout.queue_loop(env, policy, num_envs, bound, constrain=constrain,
                                                    tail_slots=tail_envs))
 
@@ -166,8 +167,8 @@ class BatchRollout:
         # tail_wait: how long the run waited for them, compiled in the background as the head ran.
         self.compile_split: dict[str, float] = {}
         self.store = store if store is not None and executable_store.supported() else None
-        # what names a program in the store; an env stage's program (the physics) takes only the
-        # slots' env states, so the env, its sharding and the input shapes name it
+        # what names a program in the store; the starts (resets) and an env stage's program (the
+        # physics) read no policy, so the env, its sharding and their inputs' shapes name them
         self._env_identity = {"env": env.config, "tasks": env.tasks, "devices": [d.id for d in self.mesh.devices.flat]}
         self._identity = {**self._env_identity, "caller": None if store is None else store.identity,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
@@ -206,7 +207,9 @@ class BatchRollout:
             self.compile_seconds = sum(self.compile_split.values())
             return
         t0 = time.perf_counter()
-        staged = {"starts": self._lower(self._starts, self._starts_inputs(inputs), "starts", key_inputs=inputs)}
+        starts_in = self._starts_inputs(inputs)  # the resets: the env's and the seed's alone, as the physics
+        staged = {"starts": self._lower(self._starts, starts_in, "starts", key_inputs=_shapes(starts_in),
+                                        identity={**self._env_identity, "seed": self._identity["seed"]})}
         self._starts_info = staged["starts"].out_info
         self._carry_info = self._lower_loop(self._loop, "", inputs, (), staged)
         done, self.compile_split = self._finish_loop(self._loop, "", staged)

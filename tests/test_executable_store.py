@@ -157,9 +157,9 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
 
 
 @pytest.mark.slow
-def test_the_physics_program_is_shared_by_rollouts_of_other_policies_on_the_same_env(tmp_path):
-    """An env stage's program (the physics) reads only the slots' env states, so a rollout of
-    another policy, stored under another caller, loads it; its own programs it compiles."""
+def test_the_resets_and_physics_programs_are_shared_by_rollouts_of_other_policies_on_the_same_env(tmp_path):
+    """The starts (the resets) and an env stage's program (the physics) read no policy, so a
+    rollout of another policy, stored under another caller, loads them; its own it compiles."""
     from envs import expert, tasks  # noqa: PLC0415
     from envs.env import EnvConfig, TabletopEnv  # noqa: PLC0415
     from heisd_jax import evaluate as ev  # noqa: PLC0415
@@ -172,8 +172,9 @@ def test_the_physics_program_is_shared_by_rollouts_of_other_policies_on_the_same
         rollout.compile(rollout.inputs(np.zeros(3, np.int32), np.arange(3)))
         splits.append(rollout.compile_split)
     first, second = splits
-    assert first["physics_trace"] > 0.0 and second["physics_trace"] == second["physics_xla"] == 0.0
-    assert all(second[f"{p}_trace"] > 0.0 for p in ("starts", "first", "turn"))
+    for part in ("starts", "physics"):
+        assert first[f"{part}_trace"] > 0.0 and second[f"{part}_trace"] == second[f"{part}_xla"] == 0.0
+    assert all(second[f"{p}_trace"] > 0.0 for p in ("first", "turn"))
 
 
 def test_the_store_keeps_within_its_size_by_dropping_the_least_recently_used(tmp_path):
