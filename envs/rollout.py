@@ -330,7 +330,8 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
         c = refill(c, go)  # takes nothing unless a slot is free and an episode pending
         acted, action = _queue_act(pol, c)
         c = c[:5] + kept(go, acted[5:8], c[5:8]) + c[8:]  # the policy's state, keys, totals
-        return _constrain_carry(c, constrain, s), constrain(batched[0](c[4], action), s), go
+        # every output placed (a program's outputs are the next one's inputs, lowered at that placement)
+        return constrain((c, batched[0](c[4], action), go), s)
 
     def first(params, starts, n_valid, carry=None):
         pol = dataclasses.replace(policy, params=params)
@@ -352,7 +353,7 @@ def queue_loop(env: TabletopEnv, policy: Policy, num_slots: int, max_steps: int,
         state = kept(go, batched[-1](c[4], x) if len(batched) > 1 else x, c[4])
         c = _queue_record(n_queue, c, state, count=go.astype(jnp.int32))
         alive = _queue_cond(max_steps, n_valid, n_queue, tail_slots)(c)
-        return *head(dataclasses.replace(policy, params=params), c, starts, n_valid, alive), alive
+        return *head(dataclasses.replace(policy, params=params), c, starts, n_valid, alive), constrain(alive, s)
 
     names = [getattr(f, "__name__", f"stage{i}") for i, f in enumerate(stages)]
     return QueueLoop(first=first, stages=tuple(middle(f, n) for f, n in zip(batched[1:-1], names[1:-1])), turn=turn)

@@ -120,7 +120,7 @@ class BatchRollout:
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
                  store: executable_store.ExecutableStore | None = None):
-        self.env, self.num_envs = env, num_envs
+        self.env, self.num_envs, self._tail_envs = env, num_envs, tail_envs
         self.queue = num_envs if queue is None else queue
         if self.queue < num_envs:
             raise ValueError(f"queue ({self.queue}) must hold at least num_envs ({num_envs}) episodes")
@@ -211,23 +211,25 @@ class BatchRollout:
         staged = {"starts": self._lower(self._starts, starts_in, "starts", key_inputs=_shapes(starts_in),
                                         identity={**self._env_identity, "seed": self._identity["seed"]})}
         self._starts_info = staged["starts"].out_info
-        self._carry_info = self._lower_loop(self._loop, "", inputs, (), staged)
+        self._carry_info = self._lower_loop(self._loop, "", self.num_envs, inputs, (), staged)
         done, self.compile_split = self._finish_loop(self._loop, "", staged)
         self._starts_compiled, self._compiled = done["starts"], done["loop"]
         self.compile_seconds = time.perf_counter() - t0
         if self._tail:
             self._tail_future = _COMPILER.submit(self._compile_tail, inputs)
 
-    def _lower_loop(self, loop: rollout.QueueLoop, prefix: str, inputs: tuple, carry: tuple, staged: dict):
-        """Traces and lowers `loop`'s programs into `staged` (parts `{prefix}first`, each
-        stage's name, `{prefix}turn`), `first` given `carry` (a tail's: the head's final carry;
-        else none); returns the output info of `first`'s carry."""
+    def _lower_loop(self, loop: rollout.QueueLoop, prefix: str, slots: int, inputs: tuple, carry: tuple,
+                    staged: dict):
+        """Traces and lowers the programs of `loop` (`slots` env slots) into `staged` (parts
+        `{prefix}first`, each stage's name, `{prefix}turn`), `first` given `carry` (a tail's:
+        the head's final carry, of num_envs slots; else none); returns `first`'s carry's shapes."""
         params, n_valid = inputs[0], inputs[3]
 
         def lowered(part, fn, args, **key):
             staged[prefix + part] = self._lower(fn, args, prefix + part, **key)
-            return staged[prefix + part].out_info
+            return sharding.slot_specs(self.mesh, staged[prefix + part].out_info, slots)
 
+        carry = sharding.slot_specs(self.mesh, carry, self.num_envs)
         c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry), key_inputs=inputs)
         for stage in loop.stages:  # the env's alone: keyed by the env and its inputs, not the policy
             args = (rollout.queue_states(c), x)
@@ -296,7 +298,7 @@ class BatchRollout:
     def _compile_tail(self, inputs: tuple):
         """The tail's programs, traced in turn in this (background) thread, then compiled side by side."""
         staged = {}
-        self._lower_loop(self._tail, "tail_", inputs, (self._carry_info,), staged)
+        self._lower_loop(self._tail, "tail_", self._tail_envs, inputs, (self._carry_info,), staged)
         done, split = self._finish_loop(self._tail, "tail_", staged)
         return done["loop"], split
 

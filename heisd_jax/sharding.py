@@ -73,12 +73,30 @@ def replicate(mesh: Mesh, tree: Any) -> Any:
 
 def slot_constraint(mesh: Mesh):
     """A function `(tree, n)` that keeps every leaf batched over n env slots split over the
-    mesh inside a jitted loop (leaves of other shapes are left alone); identity on one device."""
+    mesh inside a jitted loop, and every other leaf whole on every device (`slot_placement`);
+    identity on one device."""
     if mesh.size == 1:
         return lambda tree, n: tree
-    spec = NamedSharding(mesh, P(AXIS))
-    return lambda tree, n: jax.tree.map(
-        lambda x: jax.lax.with_sharding_constraint(x, spec) if x.ndim and x.shape[0] == n else x, tree)
+    return lambda tree, n: jax.tree.map(jax.lax.with_sharding_constraint, tree, slot_placement(mesh, tree, n))
+
+
+def slot_placement(mesh: Mesh, tree: Any, n: int) -> Any:
+    """Where `slot_constraint` puts each leaf of `tree` (arrays or their shapes): split over the
+    mesh if batched over n env slots (leading axis n), else replicated, as is an empty leaf
+    (XLA returns one replicated whatever its constraint)."""
+    spec, whole = NamedSharding(mesh, P(AXIS)), replicated(mesh)
+    split = lambda shape: len(shape) > 0 and shape[0] == n and 0 not in shape  # noqa: E731
+    return jax.tree.map(lambda x: spec if split(np.shape(x)) else whole, tree)
+
+
+def slot_specs(mesh: Mesh, tree: Any, n: int) -> Any:
+    """The shapes of `tree` placed as `slot_constraint` places them: the inputs to lower a
+    program at, which takes what another program, ending in that constraint, returned (a
+    lowered program's output shapes carry no placement); `tree` itself on one device."""
+    if mesh.size == 1:
+        return tree
+    return jax.tree.map(lambda x, where: jax.ShapeDtypeStruct(np.shape(x), x.dtype, sharding=where),
+                        tree, slot_placement(mesh, tree, n))
 
 
 def sync(name: str) -> None:
