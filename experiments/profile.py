@@ -17,13 +17,17 @@ excluded); at every step each part is timed on that step's observations with
   env_step      IK + physics + camera for the batch
 and prints per-call medians, an estimated per-action breakdown of `act` (each part times
 how often the method ran it per action, from its own statistics; the remainder is loop
-and masking overhead) and act's speedup over AR at this batch size. --trace_dir also writes
-a `jax.profiler` trace of a few steps (TensorBoard / Perfetto).
+and masking overhead) and act's speedup over AR at this batch size. --trace_dir also traces
+3 calls each of `act` and `env_step` at the last step's states under `jax.profiler`
+(TensorBoard / Perfetto, one folder each) and prints and writes (`kernels`) their per-kernel
+time per call on each device timeline (`heisd_jax.timing.kernel_summary`): where a part's
+milliseconds go, kernel by kernel.
 """
 
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 from absl import app, flags, logging
 
@@ -44,7 +48,8 @@ flags.DEFINE_string("settings", "", "The method's settings, key=value,key=value 
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
 flags.DEFINE_integer("batch", 16, "Envs decoded together.")
 flags.DEFINE_integer("steps", 30, "Timed control steps.")
-flags.DEFINE_string("trace_dir", "", "Write a jax.profiler trace of 3 steps here.")
+flags.DEFINE_string("trace_dir", "", "Trace 3 calls of act and of env_step here and summarise them per kernel.")
+flags.DEFINE_integer("top", 12, "Kernels listed per device timeline with --trace_dir.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -144,14 +149,14 @@ def main(argv):
         for k, v in stats.items():
             totals[k] = totals.get(k, 0.0) + float((np.asarray(v) * running).sum())
         n_running += float(running.sum())
-        if FLAGS.trace_dir and t == 1:
-            jax.profiler.start_trace(FLAGS.trace_dir)
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
-        if FLAGS.trace_dir and t == 3:
-            jax.profiler.stop_trace()
-    if FLAGS.trace_dir and FLAGS.steps <= 3:
-        jax.profiler.stop_trace()
+    kernels = {}
+    if FLAGS.trace_dir:  # after the timed loop, so tracing slows no timed call
+        traced = {"act": lambda: act(params, states, pstate, act_keys), "env_step": lambda: step(states, actions)}
+        for name, fn in traced.items():
+            path = timing.trace_calls(fn, 3, Path(FLAGS.trace_dir) / name)
+            kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
     med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
     per_action = {k: float(v) / max(n_running, 1.0) for k, v in totals.items()}
     print(f"\n{FLAGS.method} {settings or ''}  batch {FLAGS.batch}, {FLAGS.steps} steps, median ms per call:")
@@ -181,6 +186,11 @@ def main(argv):
     loop = {"act": 1e3 / (med["act"] + med["env_step"]), "ar": 1e3 / (med["ar"] + med["env_step"])}
     print(f"  host loop (decode + env step): {loop['act']:.1f} control steps/s with {FLAGS.method}'s act, "
           f"{loop['ar']:.1f} with AR's decode in its place")
+    for name, lines in kernels.items():
+        for line, summary in lines.items():
+            print(f"  {name} kernels, {line}: {summary['total_ms']:.3f} ms per call")
+            for kname, ms in summary["top"]:
+                print(f"    {ms:9.3f}  {kname[:150]}")
     if FLAGS.trace_dir:
         print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
     if FLAGS.out:
@@ -188,7 +198,7 @@ def main(argv):
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "median_ms": med, "per_action": per_action,
                                                  "breakdown_ms": breakdown, "speedup_vs_ar": speedup,
-                                                 "control_steps_per_s": loop})
+                                                 "control_steps_per_s": loop, "kernels": kernels})
 
 
 if __name__ == "__main__":
