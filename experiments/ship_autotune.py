@@ -1,6 +1,6 @@
 """Makes the XLA autotuning results shipped beside the checkpoints (`checkpoints/xla_autotune.pbtxt`).
 
-  python -m experiments.ship_autotune --methods=ar,expert,heisd --suites=all --episodes=50 [--num_envs=N] [--extend]
+  python -m experiments.ship_autotune --methods=ar,expert,heisd --suites=all --episodes=50 [--num_envs=N] [--tail_envs=N] [--extend]
 
 Compiles each method's evaluation rollout (`experiments.evaluate --compile_only`, one child
 process each, a fresh compilation cache so nothing is skipped), every child loading the
@@ -34,6 +34,7 @@ flags.DEFINE_string("suites", "all", "As experiments.evaluate's --suites.")
 flags.DEFINE_integer("episodes", 50, "As experiments.evaluate's --episodes.")
 flags.DEFINE_integer("num_envs", 0, "As experiments.evaluate's --num_envs (the programs' batch size; 0: its default).",
                      lower_bound=0)
+cli.define_tail_flag()  # a tail's programs are compiled (and autotuned) beside the head's
 flags.DEFINE_bool("extend", False, "Start from the shipped entries (another GPU's, other batch sizes') instead of none.")
 flags.DEFINE_string("out", str(_xla.SHIPPED_AUTOTUNE), "The results file (XLA text proto); its record is OUT with .json.")
 
@@ -51,7 +52,8 @@ def main(argv):
         raise app.UsageError("XLA autotunes only on a GPU: no CUDA plugin installed (jax-cuda*) or JAX_PLATFORMS "
                              f"excludes it ({os.environ.get('JAX_PLATFORMS') or 'unset'}); run this on the GPU the "
                              "results are for")
-    common = [f"--suites={FLAGS.suites}", f"--episodes={FLAGS.episodes}", f"--num_envs={FLAGS.num_envs}", "--compile_only"]
+    common = [f"--suites={FLAGS.suites}", f"--episodes={FLAGS.episodes}", f"--num_envs={FLAGS.num_envs}",
+              *([f"--tail_envs={FLAGS.tail_envs}"] if FLAGS.tail_envs else []), "--compile_only"]
     commands = []
     with tempfile.TemporaryDirectory(prefix="ship_autotune_") as tmp:
         load = str(out) if FLAGS.extend else ""
