@@ -222,27 +222,31 @@ class BatchRollout:
                     staged: dict):
         """Traces and lowers the programs of `loop` (`slots` env slots) into `staged` (parts
         `{prefix}first`, each stage's name, `{prefix}turn`), `first` given `carry` (a tail's:
-        the head's final carry, of num_envs slots; else none); returns `first`'s carry's shapes."""
+        the head's final carry, of num_envs slots; else none); returns `first`'s carry's shapes.
+        An env stage's XLA (the physics', the longest of a rollout's) starts at once, beside
+        the tracing left, so that it ends that much sooner; the others wait for `_finish_loop`."""
         params, n_valid = inputs[0], inputs[3]
 
-        def lowered(part, fn, args, **key):
-            staged[prefix + part] = self._lower(fn, args, prefix + part, **key)
-            return sharding.slot_specs(self.mesh, staged[prefix + part].out_info, slots)
+        def lowered(part, fn, args, start=False, **key):
+            st = self._lower(fn, args, prefix + part, **key)
+            staged[prefix + part] = _COMPILER.submit(self._finish, st) if start else st
+            return sharding.slot_specs(self.mesh, st.out_info, slots)
 
         carry = sharding.slot_specs(self.mesh, carry, self.num_envs)
         c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry), key_inputs=inputs)
         for stage in loop.stages:  # the env's alone: keyed by the env and its inputs, not the policy
             args = (rollout.queue_states(c), x)
-            x = lowered(stage.__name__, stage, args, identity=self._env_identity, key_inputs=_shapes(args))
+            x = lowered(stage.__name__, stage, args, start=True, identity=self._env_identity, key_inputs=_shapes(args))
         lowered("turn", loop.turn, (params, c, x, go, self._starts_info, n_valid), key_inputs=inputs)
         return c
 
     def _finish_loop(self, loop: rollout.QueueLoop, prefix: str, staged: dict) -> tuple[dict, dict]:
-        """XLA for every program in `staged`, side by side, after all are traced: a compile beside
-        the tracing slows it (on a GPU host XLA's code generation takes every core), and the
-        largest compile outlasts it anyway. Returns ({"loop": `loop` compiled, each other part:
-        its program}, seconds by `{part}_{stage}`)."""
-        futures = {part: _COMPILER.submit(self._finish, st) for part, st in staged.items()}
+        """XLA for every program in `staged` not yet started, side by side, after all are traced:
+        compiles beside the tracing slow it (on a GPU host XLA's code generation takes every
+        core), and the largest compile outlasts it anyway. Returns ({"loop": `loop` compiled,
+        each other part: its program}, seconds by `{part}_{stage}`)."""
+        futures = {part: st if isinstance(st, concurrent.futures.Future) else _COMPILER.submit(self._finish, st)
+                   for part, st in staged.items()}
         done, split = {}, {}
         for part, future in futures.items():
             done[part], secs = future.result()
