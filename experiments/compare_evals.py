@@ -5,7 +5,7 @@ evaluation, steps and target passes per episode, the share of skipped steps and 
 suite is within --tolerance points of the baseline (the success guard of issue 23).
 
   python -m experiments.compare_evals experiments/results/eval_ar_7c71161_h100.json \\
-      experiments/results/eval_heisd_fixed_target_h100.json [MORE.json ...] [--tolerance=2]
+      experiments/results/eval_heisd_fixed_target_h100.json.gz [MORE.json ...] [--tolerance=2]
 
 Each file is an `experiments.evaluate --out` result; all must hold the same tasks with the
 same number of episodes each (the evaluator's fixed initial states pair them).
