@@ -83,19 +83,11 @@ def mesh_planes(vert: np.ndarray, face: np.ndarray, decimals: int = 6) -> tuple[
     return n.astype(np.float32), c.astype(np.float32)
 
 
-def _dot(a: jnp.ndarray, v: jnp.ndarray) -> jnp.ndarray:
-    """a @ v over the last axis, as products and a sum: batched over a camera's rays, a matrix
-    product of 3-vectors is a GEMM whose [rays, geoms, 3] output XLA writes out in full, where
-    elementwise arithmetic fuses into each ray test."""
-    v = v[..., None, :]
-    return a[..., 0] * v[..., 0] + a[..., 1] * v[..., 1] + a[..., 2] * v[..., 2]
-
-
 def _ray_convex(normals: jnp.ndarray, offsets: jnp.ndarray, pnt: jnp.ndarray, vec: jnp.ndarray) -> jnp.ndarray:
     """Distance along `vec` from `pnt` (the mesh's frame) to the polyhedron {x: normals @ x <=
     offsets}, inf on a miss: the last plane the ray enters before the first it leaves (the leaving
     plane when `pnt` is inside, as a triangle test hits the far face)."""
-    a, b = _dot(normals, vec), offsets - _dot(normals, pnt)  # b >= 0: pnt on the inner side of the plane
+    a, b = normals @ vec, offsets - normals @ pnt  # b >= 0: pnt on the inner side of the plane
     t = mjx_ray.math.safe_div(b, a)
     t_in = jnp.max(jnp.where(a < 0, t, -jnp.inf))
     t_out = jnp.min(jnp.where(a > 0, t, jnp.inf))
@@ -111,8 +103,8 @@ def cast(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vec: jnp.ndarray) -> tuple
     matid, alpha = np.asarray(m.geom_matid), np.asarray(m.geom_rgba)[:, 3]
     mat_alpha = np.asarray(m.mat_rgba)[matid, 3] if len(m.mat_rgba) else np.ones_like(alpha)
     visible = np.isin(m.geom_group, VISIBLE_GROUPS) & np.where(matid == -1, alpha != 0, mat_alpha != 0)
-    local_pnt = _dot(jnp.swapaxes(d.geom_xmat, -1, -2), pnt - d.geom_xpos)  # [ngeom, 3]: each geom's frame
-    local_vec = _dot(jnp.swapaxes(d.geom_xmat, -1, -2), vec)
+    local_pnt = jax.vmap(lambda x, y: x.T @ (pnt - y))(d.geom_xmat, d.geom_xpos)
+    local_vec = jax.vmap(lambda x: x.T @ vec)(d.geom_xmat)
     dists, ids = [], []
     for geom_type, fn in _PRIMITIVE_RAYS.items():
         (idx,) = np.nonzero(visible & (m.geom_type == geom_type))
