@@ -21,7 +21,8 @@ and masking overhead) and act's speedup over AR at this batch size. --trace_dir 
 3 calls each of `act` and `env_step` at the last step's states under `jax.profiler`
 (TensorBoard / Perfetto, one folder each) and prints and writes (`kernels`) their per-kernel
 time per call on each device timeline (`heisd_jax.timing.kernel_summary`): where a part's
-milliseconds go, kernel by kernel.
+milliseconds go, kernel by kernel. --hlo_dir writes both calls' optimised HLO (gzipped
+text), where those kernels' names (XLA's fusions) can be looked up.
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ flags.DEFINE_integer("batch", 16, "Envs decoded together.")
 flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Trace 3 calls of act and of env_step here and summarise them per kernel.")
 flags.DEFINE_integer("top", 12, "Kernels listed per device timeline with --trace_dir.")
+flags.DEFINE_string("hlo_dir", "", "Write the optimised HLO of act and of env_step here (the kernels' names).")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -152,11 +154,13 @@ def main(argv):
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
     kernels = {}
-    if FLAGS.trace_dir:  # after the timed loop, so tracing slows no timed call
-        traced = {"act": lambda: act(params, states, pstate, act_keys), "env_step": lambda: step(states, actions)}
-        for name, fn in traced.items():
-            path = timing.trace_calls(fn, 3, Path(FLAGS.trace_dir) / name)
+    calls = {"act": (act, (params, states, pstate, act_keys)), "env_step": (step, (states, actions))}
+    for name, (fn, args) in calls.items():  # after the timed loop, so tracing slows no timed call
+        if FLAGS.trace_dir:
+            path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
             kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
+        if FLAGS.hlo_dir:
+            timing.write_hlo(fn, args, Path(FLAGS.hlo_dir) / f"{name}.hlo.txt.gz")
     med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
     per_action = {k: float(v) / max(n_running, 1.0) for k, v in totals.items()}
     print(f"\n{FLAGS.method} {settings or ''}  batch {FLAGS.batch}, {FLAGS.steps} steps, median ms per call:")

@@ -22,7 +22,6 @@ names to the program. On the CPU the device timelines are the XLA threads.
 from __future__ import annotations
 
 import dataclasses
-import gzip
 import json
 from pathlib import Path
 
@@ -92,10 +91,7 @@ def main(argv):
             if name in ("zero_round", "random"):
                 row["rounds"] = float(jnp.max(fn(*args)[1]["rounds"]))
             if FLAGS.hlo_dir:
-                hlo = Path(FLAGS.hlo_dir) / f"{name}_{batch}.hlo.txt.gz"
-                hlo.parent.mkdir(parents=True, exist_ok=True)
-                with gzip.open(hlo, "wt") as f:
-                    f.write(fn.lower(*args).compile().as_text())
+                timing.write_hlo(fn, args, Path(FLAGS.hlo_dir) / f"{name}_{batch}.hlo.txt.gz")
             if FLAGS.trace_calls:
                 path = timing.trace_calls(lambda: fn(*args), FLAGS.trace_calls,
                                           Path(FLAGS.trace_dir) / f"{name}_{batch}")

@@ -6,7 +6,8 @@
   compiled program, the difference per run; what the cost model's tables hold (a decode
   pays one dispatch per action, not per pass);
 - per kernel (`trace_calls`, `kernel_summary`): a `jax.profiler` trace summarised per
-  device timeline (experiments/trace_decode.py).
+  device timeline (experiments/trace_decode.py, experiments/profile.py); `write_hlo` keeps
+  the optimised HLO that names those kernels (its fusions).
 """
 
 from __future__ import annotations
@@ -84,6 +85,16 @@ def trace_calls(fn, calls: int, directory: str | Path) -> Path | None:
             jax.block_until_ready(fn())
     found = sorted(directory.glob("**/perfetto_trace.json.gz"))
     return found[-1] if found else None
+
+
+def write_hlo(fn, args: tuple, path: str | Path) -> Path:
+    """Writes jitted `fn`'s optimised HLO for `args` to `path` (gzipped text), where a trace's
+    kernel names (its fusions) can be looked up; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with gzip.open(path, "wt") as f:
+        f.write(fn.lower(*args).compile().as_text())
+    return path
 
 
 def kernel_summary(path: str | Path, calls: int, top: int) -> dict:

@@ -1,6 +1,7 @@
 """The profiler runs a few closed-loop steps of the HeiSD method (shipped checkpoints) and
 reports every part, the breakdown and the speedup over AR; bad flags fail before compiling."""
 
+import gzip
 import json
 import subprocess
 import sys
@@ -19,7 +20,8 @@ def _run(argv):
 @pytest.mark.slow  # the entry point in its own process, compiling every part of the method
 def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
     out = _run(["--method=heisd", "--settings=budget=fixed,top_k=4,depth=2,total_tokens=8", "--suites=goal", "--batch=2",
-                "--steps=4", f"--trace_dir={tmp_path / 'trace'}", f"--out={tmp_path / 'p.json'}"])
+                "--steps=4", f"--trace_dir={tmp_path / 'trace'}", f"--hlo_dir={tmp_path / 'hlo'}",
+                f"--out={tmp_path / 'p.json'}"])
     assert out.returncode == 0, out.stderr[-3000:]
     r = json.loads((tmp_path / "p.json").read_text())
     assert "experiments.profile" in r["command"] and r["device"] and r["date"]  # the file says how it was made
@@ -36,6 +38,8 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
         assert any((tmp_path / "trace" / part).rglob("*.xplane.pb")), part
         lines = r["kernels"][part]
         assert lines and all(s["total_ms"] > 0 and s["top"] for s in lines.values()), part
+        with gzip.open(tmp_path / "hlo" / f"{part}.hlo.txt.gz", "rt") as f:  # where the kernels' names are
+            assert "HloModule" in f.read(), part
     assert "act vs AR at batch 2" in out.stdout
 
 

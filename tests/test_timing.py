@@ -1,6 +1,8 @@
 """Per-kernel trace summaries (heisd_jax.timing, behind experiments/trace_decode.py): a traced
 jitted call shows up on a device timeline, with its time split per call."""
 
+import gzip
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -27,3 +29,13 @@ def test_kernel_summary_of_a_traced_call(tmp_path):
         assert per_call[name]["total_ms"] == pytest.approx(line["total_ms"] / 3)
         assert [k for k, _ in per_call[name]["top"]] == [k for k, _ in line["top"]]
         np.testing.assert_allclose([ms for _, ms in per_call[name]["top"]], [ms / 3 for _, ms in line["top"]])
+
+
+def test_write_hlo_keeps_the_optimised_program_that_names_the_kernels(tmp_path):
+    f = jax.jit(lambda x: jnp.tanh(x @ x.T).sum(0))
+    x = jnp.ones((64, 64), jnp.float32)
+    path = timing.write_hlo(f, (x,), tmp_path / "sub" / "f.hlo.txt.gz")
+    with gzip.open(path, "rt") as fh:
+        text = fh.read()
+    assert text.startswith("HloModule") and "tanh" in text
+    assert text == f.lower(x).compile().as_text()  # the compiled program, not the unoptimised one
