@@ -105,7 +105,8 @@ class BatchRollout:
     episodes' starts (`rollout.queue_starts`); `first` (the slots filled, the first action and
     IK); the physics substeps; and `turn` (the derived state, camera and outcomes of one step,
     then the next refill, action and IK). XLA compiles a program on one thread, so they compile
-    side by side: the physics as soon as it is lowered, the others once all are traced. Compiled ahead of time, so that calls time execution only.
+    side by side: the physics as soon as it is lowered, the others once all are traced.
+    Compiled ahead of time, so that calls time execution only.
     `seed=None`: the seed is an input (`inputs(..., seed=)`), so one program serves every seed.
     `store`: compiled programs are loaded from it, and stored in it when compiled, where the
     backend supports it (`executable_store.supported`); the key adds this rollout's env, policy
