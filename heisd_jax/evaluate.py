@@ -223,7 +223,8 @@ class BatchRollout:
                     staged: dict):
         """Traces and lowers the programs of `loop` (`slots` env slots) into `staged` (parts
         `{prefix}first`, each stage's name, `{prefix}turn`), `first` given `carry` (a tail's:
-        the head's final carry, of num_envs slots; else none); returns `first`'s carry's shapes.
+        the head's final carry's placed shapes, of num_envs slots; else none); returns `first`'s
+        carry's shapes, placed as the next programs take them.
         An env stage's XLA (the physics', the longest of a rollout's) starts at once, beside
         the tracing left, so that it ends that much sooner; the others wait for `_finish_loop`."""
         params, n_valid = inputs[0], inputs[3]
@@ -233,7 +234,6 @@ class BatchRollout:
             staged[prefix + part] = _COMPILER.submit(self._finish, st) if start else st
             return sharding.slot_specs(self.mesh, st.out_info, slots)
 
-        carry = sharding.slot_specs(self.mesh, carry, self.num_envs)
         c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry), key_inputs=inputs)
         for stage in loop.stages:  # the env's alone: keyed by the env and its inputs, not the policy
             args = (rollout.queue_states(c), x)
