@@ -1,9 +1,9 @@
 """RGB cameras rendered inside JAX by ray casting, one ray per pixel.
 
-`cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with one change:
-a convex mesh is intersected as the polyhedron its face planes bound (a slab test per distinct
-plane) instead of triangle by triangle. The hits are the same up to float rounding; the
-scene's cylinders (octagonal prisms, 28 triangles but 10 planes) were half the camera's cost.
+`cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with
+`envs.raycast`'s tests: the same per-type tests written so that XLA fuses a view's every ray
+test into a few reductions, and a convex mesh intersected as the polyhedron its face planes
+bound instead of triangle by triangle.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
 from normals estimated on the depth map and a mild distance falloff. Geom colours are an
@@ -22,10 +22,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import mujoco
 import numpy as np
 from mujoco import mjx
-from mujoco.mjx._src import ray as mjx_ray
+
+from envs import raycast
 
 BACKGROUND = np.array([0.55, 0.62, 0.70])
 LIGHT_DIR = np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])
@@ -61,69 +61,28 @@ def pixel_rays(height: int, width: int, fovy_deg: float) -> np.ndarray:
 
 
 VISIBLE_GROUPS = (0, 1, 2)  # geom groups the cameras see (MuJoCo's default visible groups)
-_PRIMITIVE_RAYS = {mujoco.mjtGeom.mjGEOM_PLANE: mjx_ray._ray_plane, mujoco.mjtGeom.mjGEOM_SPHERE: mjx_ray._ray_sphere,
-                   mujoco.mjtGeom.mjGEOM_CAPSULE: mjx_ray._ray_capsule,
-                   mujoco.mjtGeom.mjGEOM_ELLIPSOID: mjx_ray._ray_ellipsoid, mujoco.mjtGeom.mjGEOM_BOX: mjx_ray._ray_box}
 
 
-def mesh_planes(vert: np.ndarray, face: np.ndarray, decimals: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """(normals [P, 3], offsets [P]) of a convex mesh's distinct face planes, outward: a point x
-    is inside iff normals @ x <= offsets. Raises ValueError for a mesh that is not convex."""
-    tri = vert[face].astype(np.float64)
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    c = np.einsum("fi,fi->f", n, tri[:, 0])
-    n = np.where((c < np.einsum("fi,i->f", n, vert.mean(0)))[:, None], -n, n)  # outward from the centroid
-    c = np.einsum("fi,fi->f", n, tri[:, 0])
-    _, keep = np.unique(np.round(np.concatenate([n, c[:, None]], 1), decimals), axis=0, return_index=True)
-    n, c = n[np.sort(keep)], c[np.sort(keep)]
-    scale = np.abs(vert).max()
-    if np.any(vert @ n.T > c + 1e-6 * scale):
-        raise ValueError("mesh_planes needs a convex mesh: a vertex lies outside one of its face planes")
-    return n.astype(np.float32), c.astype(np.float32)
-
-
-def _ray_convex(normals: jnp.ndarray, offsets: jnp.ndarray, pnt: jnp.ndarray, vec: jnp.ndarray) -> jnp.ndarray:
-    """Distance along `vec` from `pnt` (the mesh's frame) to the polyhedron {x: normals @ x <=
-    offsets}, inf on a miss: the last plane the ray enters before the first it leaves (the leaving
-    plane when `pnt` is inside, as a triangle test hits the far face)."""
-    a, b = normals @ vec, offsets - normals @ pnt  # b >= 0: pnt on the inner side of the plane
-    t = mjx_ray.math.safe_div(b, a)
-    t_in = jnp.max(jnp.where(a < 0, t, -jnp.inf))
-    t_out = jnp.min(jnp.where(a > 0, t, jnp.inf))
-    parallel_outside = jnp.any((a == 0) & (b < 0))
-    dist = jnp.where(t_in >= 0, t_in, t_out)
-    return jnp.where((t_in <= t_out) & (t_out >= 0) & ~parallel_outside, dist, jnp.inf)
+def visible_geoms(m: mjx.Model) -> np.ndarray:
+    """bool [ngeom]: the geoms a camera shows (VISIBLE_GROUPS, not transparent)."""
+    matid, alpha = np.asarray(m.geom_matid), np.asarray(m.geom_rgba)[:, 3]
+    mat_alpha = np.asarray(m.mat_rgba)[matid, 3] if len(m.mat_rgba) else np.ones_like(alpha)
+    return np.isin(m.geom_group, VISIBLE_GROUPS) & np.where(matid == -1, alpha != 0, mat_alpha != 0)
 
 
 def cast(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vec: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(distance, geom id) of the first visible geom (VISIBLE_GROUPS, not transparent) that
-    the ray from `pnt` along `vec` hits, (-1, -1) if none: `mjx.ray(m, d, pnt, vec, geomgroup)`
-    with convex meshes intersected by their face planes."""
-    matid, alpha = np.asarray(m.geom_matid), np.asarray(m.geom_rgba)[:, 3]
-    mat_alpha = np.asarray(m.mat_rgba)[matid, 3] if len(m.mat_rgba) else np.ones_like(alpha)
-    visible = np.isin(m.geom_group, VISIBLE_GROUPS) & np.where(matid == -1, alpha != 0, mat_alpha != 0)
-    local_pnt = jax.vmap(lambda x, y: x.T @ (pnt - y))(d.geom_xmat, d.geom_xpos)
-    local_vec = jax.vmap(lambda x: x.T @ vec)(d.geom_xmat)
-    dists, ids = [], []
-    for geom_type, fn in _PRIMITIVE_RAYS.items():
-        (idx,) = np.nonzero(visible & (m.geom_type == geom_type))
-        if idx.size:
-            dists.append(jax.vmap(fn)(m.geom_size[idx], local_pnt[idx], local_vec[idx]))
-            ids.append(idx)
-    faceadr = np.append(m.mesh_faceadr, len(m.mesh_face))  # as MJX's own ray caster reads them
-    for g in np.nonzero(visible & (m.geom_type == mujoco.mjtGeom.mjGEOM_MESH))[0]:
-        mesh = m.geom_dataid[g]
-        vert = np.asarray(m.mesh_vert)[m.mesh_vertadr[mesh]:m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]]
-        normals, offsets = mesh_planes(vert, np.asarray(m.mesh_face)[faceadr[mesh]:faceadr[mesh + 1]])
-        dists.append(_ray_convex(jnp.asarray(normals), jnp.asarray(offsets), local_pnt[g], local_vec[g])[None])
-        ids.append(np.array([g]))
-    if not ids:
-        return jnp.array(-1.0), jnp.array(-1)
-    dists, ids = jnp.concatenate(dists), np.concatenate(ids)
-    best = jnp.argmin(dists)
-    miss = jnp.isinf(dists[best])
-    return jnp.where(miss, -1.0, dists[best]), jnp.where(miss, -1, jnp.asarray(ids)[best])
+    """(distance, geom id) of the first visible geom that the ray from `pnt` along `vec` hits,
+    (-1, -1) if none: `mjx.ray(m, d, pnt, vec, geomgroup)` with `envs.raycast`'s tests."""
+    return raycast.nearest_hit(m, d, raycast.ray_groups(m, visible_geoms(m)), pnt, vec)
+
+
+def cast_rays(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vecs: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """`cast` of rays [R, 3] from one origin: on a GPU one Pallas kernel
+    (`raycast.nearest_hits_kernel`), elsewhere `cast` vmapped over the rays."""
+    groups = raycast.ray_groups(m, visible_geoms(m))
+    if jax.default_backend() == "gpu":
+        return raycast.nearest_hits_kernel(m, d, groups, pnt, vecs)
+    return jax.vmap(lambda v: raycast.nearest_hit(m, d, groups, pnt, v))(vecs)
 
 
 def render_views(mj_model, m: mjx.Model, d: mjx.Data, geom_rgb: jnp.ndarray, cfg: CameraConfig) -> jnp.ndarray:
@@ -139,7 +98,7 @@ def view_hits(m: mjx.Model, d: mjx.Data, cam_id: int, height: int, width: int,
     """(distance [H, W], geom id [H, W], ray direction [H, W, 3] in the world) of each pixel of
     camera `cam_id`: the first visible geom its ray hits, (-1, -1) where none."""
     dirs = jnp.asarray(pixel_rays(height, width, fovy_deg)) @ d.cam_xmat[cam_id].reshape(3, 3).T
-    dist, gid = jax.vmap(lambda v: cast(m, d, d.cam_xpos[cam_id], v))(dirs.reshape(-1, 3))
+    dist, gid = cast_rays(m, d, d.cam_xpos[cam_id], dirs.reshape(-1, 3))
     return dist.reshape(height, width), gid.reshape(height, width), dirs
 
 

@@ -1,0 +1,105 @@
+"""envs.raycast: each geom type's ray test against MJX's, the convex mesh test against the
+nearest triangle hit, and the reduction that keeps a ray's nearest geom."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from mujoco.mjx._src import ray as mjx_ray
+
+from envs import raycast
+
+
+def _rays(n, seed, spread=1.5):
+    """n rays from points around the origin aimed near it (hits and misses), with some
+    parallel to the axes, as float32."""
+    rng = np.random.default_rng(seed)
+    pnts = rng.uniform(-spread, spread, (n, 3)).astype(np.float32)
+    vecs = (rng.uniform(-0.8, 0.8, (n, 3)) - pnts).astype(np.float32)
+    vecs[: n // 10] = np.array([0, 0, -1], np.float32)
+    vecs[n // 10: n // 5] = np.array([1, 0, 0], np.float32)
+    return pnts, vecs / np.linalg.norm(vecs, axis=1, keepdims=True)
+
+
+SHAPES = {  # geom type: (raycast's test, MJX's, size)
+    "plane": (raycast.ray_plane, mjx_ray._ray_plane, [0.6, 0.4, 0.01]),
+    "infinite plane": (raycast.ray_plane, mjx_ray._ray_plane, [0.0, 0.0, 0.01]),
+    "sphere": (raycast.ray_sphere, mjx_ray._ray_sphere, [0.5, 0, 0]),
+    "capsule": (raycast.ray_capsule, mjx_ray._ray_capsule, [0.3, 0.5, 0]),
+    "ellipsoid": (raycast.ray_ellipsoid, mjx_ray._ray_ellipsoid, [0.3, 0.5, 0.7]),
+    "box": (raycast.ray_box, mjx_ray._ray_box, [0.3, 0.5, 0.7]),
+}
+
+
+@pytest.mark.parametrize("shape", list(SHAPES))
+def test_each_test_equals_mjx(shape):
+    ours, theirs, size = SHAPES[shape]
+    pnts, vecs = _rays(600, 1)
+    size = jnp.asarray(size, jnp.float32)
+    got = np.asarray(jax.jit(jax.vmap(lambda p, v: ours(size, p, v)))(pnts, vecs))
+    want = np.asarray(jax.jit(jax.vmap(lambda p, v: theirs(size, p, v)))(pnts, vecs))
+    assert np.isfinite(want).sum() > 50 and np.isinf(want).sum() > 50  # hits and misses both tested
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-5, atol=1e-6)
+
+
+def test_tests_hold_no_dot_or_reduction():
+    """What lets XLA fuse a camera's ray tests into one reduction per geom type."""
+    pnts, vecs = _rays(8, 2)
+    for shape, (ours, _, size) in SHAPES.items():
+        hlo = jax.jit(jax.vmap(lambda p, v: ours(jnp.asarray(size, jnp.float32), p, v))).lower(pnts, vecs).as_text()
+        assert "dot_general" not in hlo and "reduce" not in hlo, shape
+    normals, offsets = raycast.mesh_planes(*_cube_mesh())
+    hlo = jax.jit(jax.vmap(lambda p, v: raycast.ray_convex(normals, offsets, p, v))).lower(pnts, vecs).as_text()
+    assert "dot_general" not in hlo and "reduce" not in hlo
+
+
+def test_first_min_is_min_and_argmin_ties_included():
+    rng = np.random.default_rng(3)
+    d = rng.integers(0, 4, (50, 7)).astype(np.float32)  # many ties
+    d[:5] = np.inf  # rows with no hit
+    d[5:10, 2:] = np.inf
+    dist, i = jax.jit(raycast.first_min)(jnp.asarray(d))
+    np.testing.assert_array_equal(np.asarray(dist), d.min(1))
+    np.testing.assert_array_equal(np.asarray(i)[5:], d.argmin(1)[5:])
+    assert np.asarray(i).dtype == np.int32
+
+
+def _cube_mesh():
+    """(vert, face) of a unit cube as MuJoCo triangulates it (12 triangles)."""
+    corners = " ".join(f"{x} {y} {z}" for x in (-.5, .5) for y in (-.5, .5) for z in (-.5, .5))
+    m = mujoco.MjModel.from_xml_string(f'<mujoco><asset><mesh name="c" vertex="{corners}"/></asset>'
+                                       f'<worldbody><geom type="mesh" mesh="c"/></worldbody></mujoco>')
+    return m.mesh_vert.copy(), m.mesh_face.copy()
+
+
+def test_convex_ray_equals_the_nearest_triangle_hit():
+    vert, face = _cube_mesh()
+    normals, offsets = raycast.mesh_planes(vert, face)
+    assert len(face) == 12 and len(normals) == 6  # coplanar triangles share a plane
+    rng = np.random.default_rng(0)
+    pnts = rng.uniform(-1.5, 1.5, (400, 3)).astype(np.float32)  # some inside the cube
+    vecs = (rng.uniform(-0.8, 0.8, (400, 3)) - pnts).astype(np.float32)  # aimed near the cube: hits and misses
+    vecs[:40] = np.array([0, 0, -1], np.float32)  # axis-parallel rays: parallel to four planes
+    vecs /= np.linalg.norm(vecs, axis=1, keepdims=True)
+    tris = jnp.asarray(vert[face])
+
+    def triangles(p, v):
+        basis = jnp.array(mjx_ray.math.orthogonals(v)).T
+        return jnp.min(jax.vmap(mjx_ray._ray_triangle, in_axes=(0, None, None, None))(tris, p, v, basis))
+
+    want = np.asarray(jax.vmap(triangles)(pnts, vecs))
+    got = np.asarray(jax.vmap(lambda p, v: raycast.ray_convex(normals, offsets, p, v))(pnts, vecs))
+    assert np.isfinite(want).sum() > 100 and np.isinf(want).sum() > 100  # hits and misses both tested
+    np.testing.assert_array_equal(np.isinf(got), np.isinf(want))
+    np.testing.assert_allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-5, atol=1e-6)
+
+
+def test_mesh_planes_refuses_a_non_convex_mesh():
+    vert, face = _cube_mesh()
+    vert[0] *= 0.2  # a corner pushed inside: the faces around it fold inwards
+    with pytest.raises(ValueError, match="convex mesh"):
+        raycast.mesh_planes(vert, face)
+
+
