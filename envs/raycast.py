@@ -199,12 +199,14 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
     `block` rays and runs every geom's test on them in turn, keeping the nearest hit, so that
     nothing but the rays and the result goes through memory. vmap adds the env axis to its
     grid. `interpret`: run the kernel's body as JAX operations (any backend; for tests)."""
+    n_rays = vecs.shape[0]
+    if not groups:
+        return jnp.full((n_rays,), -1.0, jnp.float32), jnp.full((n_rays,), -1, jnp.int32)
     ids = np.concatenate([g.ids for g in groups])
     local_pnt = to_geom_frames(d.geom_xmat[ids], pnt - d.geom_xpos[ids])
     table = jnp.concatenate([d.geom_xmat[ids].reshape(len(ids), 9), local_pnt, m.geom_size[ids]], 1)
     table = table.astype(jnp.float32).reshape(-1)
     table = jnp.pad(table, (0, pl.next_power_of_2(table.size) - table.size))  # Triton blocks: powers of two
-    n_rays = vecs.shape[0]
     padded = -(-n_rays // block) * block
     comps = [jnp.pad(vecs[:, i].astype(jnp.float32), (0, padded - n_rays)) for i in range(3)]
 

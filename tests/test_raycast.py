@@ -6,6 +6,7 @@ import jax.numpy as jnp
 import mujoco
 import numpy as np
 import pytest
+from mujoco import mjx
 from mujoco.mjx._src import ray as mjx_ray
 
 from envs import raycast
@@ -103,3 +104,15 @@ def test_mesh_planes_refuses_a_non_convex_mesh():
         raycast.mesh_planes(vert, face)
 
 
+
+
+def test_casters_without_visible_geoms_miss_every_ray():
+    mj = mujoco.MjModel.from_xml_string('<mujoco><worldbody><geom type="sphere" size="0.1" group="3"/>'
+                                        '</worldbody></mujoco>')
+    m, d = mjx.put_model(mj), mjx.make_data(mj)
+    groups = raycast.ray_groups(m, np.zeros(mj.ngeom, bool))
+    vecs = jnp.asarray(_rays(4, 3)[1])
+    for dist, gid in (jax.vmap(lambda v: raycast.nearest_hit(m, d, groups, jnp.zeros(3), v))(vecs),
+                      raycast.nearest_hits_kernel(m, d, groups, jnp.zeros(3), vecs, interpret=True)):
+        np.testing.assert_array_equal(np.asarray(dist), -1.0)
+        np.testing.assert_array_equal(np.asarray(gid), -1)
