@@ -194,10 +194,11 @@ _GEOM_ROW = 15  # a geom's row in the kernel's table: xmat (9, row-major), the r
 
 
 def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, vecs: jnp.ndarray,
-                        block: int = 256, interpret: bool = False):
+                        block: int = 128, interpret: bool = False):
     """`nearest_hit` for rays [R, 3] from one origin, as one Pallas kernel: each program takes
     `block` rays and runs every geom's test on them in turn, keeping the nearest hit, so that
-    nothing but the rays and the result goes through memory. vmap adds the env axis to its
+    nothing but the rays and the result goes through memory. The hits do not depend on
+    `block`; 128 was the fastest on an H100 (BENCHMARKS.md). vmap adds the env axis to the
     grid. `interpret`: run the kernel's body as JAX operations (any backend; for tests)."""
     n_rays = vecs.shape[0]
     if not groups:
