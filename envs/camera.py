@@ -1,9 +1,9 @@
 """RGB cameras rendered inside JAX by ray casting, one ray per pixel.
 
 `cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with
-`envs.raycast`'s tests: the same per-type tests written so that XLA fuses a view's every ray
-test into a few reductions, and a convex mesh intersected as the polyhedron its face planes
-bound instead of triangle by triangle.
+`envs.raycast`'s tests: MJX's per-type tests written on components, and a convex mesh
+intersected as the polyhedron its face planes bound instead of triangle by triangle. On a GPU
+a view's rays are cast by one Pallas kernel (`cast_rays`), which gives the same hits.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
 from normals estimated on the depth map and a mild distance falloff. Geom colours are an

@@ -1,17 +1,19 @@
-"""Ray-geom intersection tests written for a camera's batch of rays on an accelerator.
+"""Ray-geom intersection tests and the casters that find a ray's nearest hit.
 
 Each test is MJX's (`mujoco.mjx._src.ray`) for that geom type, with the same arithmetic written
 on components: a product of two 3-vectors is three products and two sums, and a box's or a
-convex mesh's faces are a chain of elementwise minima and maxima. So a test holds no dot and
-no reduction, and XLA fuses it into the reduction that keeps each ray's nearest geom. MJX's
-dots, batched over rays and geoms, lower to matrix products and reductions whose [envs, rays,
-geoms] outputs are written to memory and read back, which made the camera memory-bound.
+convex mesh's faces are a chain of elementwise minima and maxima. So the same function runs
+on one ray (`nearest_hit`, vmapped over a camera's rays) and on a block of rays inside a
+Pallas kernel (`nearest_hits_kernel`, the GPU's caster). Batched over envs, rays and geoms,
+MJX's dots lower to matrix products and reductions whose [envs, rays, geoms] outputs XLA
+writes to memory and reads back (gigabytes per view at 4,096 envs); the kernel keeps each
+ray's running nearest hit in registers instead.
 
 All tests take a geom's `size`, and the ray's origin `pnt` and direction `vec` in the geom's
-frame, each as its components (a [3] array, or three arrays or scalars: a Pallas kernel passes
-a block of rays' directions as three vectors), and return the distance along `vec` to the first hit, inf on a miss. A convex mesh is
-intersected as the polyhedron its face planes bound (`mesh_planes`, `ray_convex`), instead of
-triangle by triangle: the hits are the same up to float rounding, at a fraction of the cost.
+frame, each as its components (a [3] array, or three arrays or scalars), and return the
+distance along `vec` to the first hit, inf on a miss. A convex mesh is intersected as the
+polyhedron its face planes bound (`mesh_planes`, `ray_convex`) instead of triangle by
+triangle: the hits are the same up to float rounding, at a fraction of the cost.
 """
 
 from __future__ import annotations
@@ -126,8 +128,8 @@ def ray_convex(normals: np.ndarray, offsets: np.ndarray, pnt, vec):
 
 
 def first_min(dists: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(min, the first index where it is reached) over the last axis, as one reduction, so
-    that the distances are computed inside it and never stored. The first index, as
+    """(min, the first index where it is reached) over the last axis, as one reduction (no
+    second pass over the distances to read the minimum at the index). The first index, as
     `jnp.argmin`: the order of the geoms decides a tie."""
     index = lax.broadcasted_iota(jnp.int32, dists.shape, dists.ndim - 1)
 

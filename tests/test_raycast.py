@@ -46,7 +46,7 @@ def test_each_test_equals_mjx(shape):
 
 
 def test_tests_hold_no_dot_or_reduction():
-    """What lets XLA fuse a camera's ray tests into one reduction per geom type."""
+    """The component form that lets a Pallas kernel run the tests on a block of rays."""
     pnts, vecs = _rays(8, 2)
     for shape, (ours, _, size) in SHAPES.items():
         hlo = jax.jit(jax.vmap(lambda p, v: ours(jnp.asarray(size, jnp.float32), p, v))).lower(pnts, vecs).as_text()
