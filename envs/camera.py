@@ -77,10 +77,12 @@ def cast(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vec: jnp.ndarray) -> tuple
 
 
 def cast_rays(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vecs: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """`cast` of rays [R, 3] from one origin: on a GPU one Pallas kernel
-    (`raycast.nearest_hits_kernel`), elsewhere `cast` vmapped over the rays."""
+    """`cast` of rays [R, 3] from one origin: on a single GPU one Pallas kernel
+    (`raycast.nearest_hits_kernel`, the same hits), elsewhere `cast` vmapped over the rays.
+    With several devices an env batch is split over them by GSPMD, which cannot split a
+    kernel's call: it would gather every env's rays onto each device and cast them all there."""
     groups = raycast.ray_groups(m, visible_geoms(m))
-    if jax.default_backend() == "gpu":
+    if jax.default_backend() == "gpu" and jax.device_count() == 1:
         return raycast.nearest_hits_kernel(m, d, groups, pnt, vecs)
     return jax.vmap(lambda v: raycast.nearest_hit(m, d, groups, pnt, v))(vecs)
 
