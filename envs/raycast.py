@@ -192,22 +192,42 @@ def nearest_hit(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, vec: jnp.n
     return jnp.where(miss, -1.0, best_dist), jnp.where(miss, -1, best_id)
 
 
-_GEOM_ROW = 15  # a geom's row in the kernel's table: xmat (9, row-major), the ray origin in its frame (3), size (3)
+# A geom's row in the kernel's table: xmat (9, row-major), the ray origin in the geom's frame (3),
+# size (3), the geom's centre relative to the ray origin in the world frame (3).
+_GEOM_ROW = 18
+# A geom's bounding sphere (radius geom_rbound) as the kernel's cull test widens it, so that
+# float rounding never culls a geom that a ray might hit: radius * (1 + _CULL_SLACK) + _CULL_PAD.
+_CULL_SLACK, _CULL_PAD = 1e-3, 1e-5
+
+
+def _misses_sphere(centre, radius: float, vec):
+    """Whether the ray from the origin along `vec` (components) surely misses the sphere of
+    `radius` (a host float) around `centre` (components, relative to the ray's origin), with
+    the sphere widened for rounding: the line passes outside it, or the centre lies behind the
+    origin (the distance to the sphere only grows along the ray) and the origin outside it."""
+    r2 = (radius * (1 + _CULL_SLACK) + _CULL_PAD) ** 2
+    cc, t, vv = dot3(centre, centre), dot3(centre, vec), dot3(vec, vec)
+    return (cc * vv - t * t > r2 * vv) | ((t < 0) & (cc > r2))
 
 
 def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, vecs: jnp.ndarray,
                         block: int = 128, interpret: bool = False):
     """`nearest_hit` for rays [R, 3] from one origin, as one Pallas kernel: each program takes
     `block` rays and runs every geom's test on them in turn, keeping the nearest hit, so that
-    nothing but the rays and the result goes through memory. The hits do not depend on
-    `block`; 128 was the fastest on an H100 (BENCHMARKS.md). vmap adds the env axis to the
-    grid. `interpret`: run the kernel's body as JAX operations (any backend; for tests)."""
+    nothing but the rays and the result goes through memory. A geom with a bounding sphere
+    (`geom_rbound` > 0, as MuJoCo C's ray caster uses it) is skipped by a program whose rays
+    all miss that sphere, where its test would give inf to each of them: the hits are
+    `nearest_hit`'s. They do not depend on `block`; 128 was the fastest on an H100
+    (BENCHMARKS.md). vmap adds the env axis to the grid. `interpret`: run the kernel's body
+    as JAX operations (any backend; for tests)."""
     n_rays = vecs.shape[0]
     if not groups:
         return jnp.full((n_rays,), -1.0, jnp.float32), jnp.full((n_rays,), -1, jnp.int32)
     ids = np.concatenate([g.ids for g in groups])
     local_pnt = to_geom_frames(d.geom_xmat[ids], pnt - d.geom_xpos[ids])
-    table = jnp.concatenate([d.geom_xmat[ids].reshape(len(ids), 9), local_pnt, m.geom_size[ids]], 1)
+    rbound = np.asarray(m.geom_rbound)
+    table = jnp.concatenate([d.geom_xmat[ids].reshape(len(ids), 9), local_pnt, m.geom_size[ids],
+                             d.geom_xpos[ids] - pnt], 1)
     table = table.astype(jnp.float32).reshape(-1)
     table = jnp.pad(table, (0, pl.next_power_of_2(table.size) - table.size))  # Triton blocks: powers of two
     padded = -(-n_rays // block) * block
@@ -221,8 +241,16 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
         for group in groups:
             for g in group.ids:
                 row = [table_ref[_GEOM_ROW * slot + k] for k in range(_GEOM_ROW)]
-                local_vec = [row[i] * vec[0] + row[3 + i] * vec[1] + row[6 + i] * vec[2] for i in range(3)]
-                dist = group.test(row[12:15], row[9:12], local_vec)
+
+                def test(row=row, test=group.test):
+                    local_vec = [row[i] * vec[0] + row[3 + i] * vec[1] + row[6 + i] * vec[2] for i in range(3)]
+                    return test(row[12:15], row[9:12], local_vec)
+
+                if rbound[g] > 0:
+                    all_miss = jnp.min(jnp.where(_misses_sphere(row[15:18], float(rbound[g]), vec), 1, 0)) == 1
+                    dist = jax.lax.cond(all_miss, lambda: jnp.full(vec[0].shape, jnp.inf, jnp.float32), test)
+                else:
+                    dist = test()
                 nearer = dist < best_dist  # strictly: the earlier geom keeps a tie, as in nearest_hit
                 best_dist = jnp.where(nearer, dist, best_dist)
                 best_id = jnp.where(nearer, jnp.int32(g), best_id)

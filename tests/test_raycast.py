@@ -116,3 +116,23 @@ def test_casters_without_visible_geoms_miss_every_ray():
                       raycast.nearest_hits_kernel(m, d, groups, jnp.zeros(3), vecs, interpret=True)):
         np.testing.assert_array_equal(np.asarray(dist), -1.0)
         np.testing.assert_array_equal(np.asarray(gid), -1)
+
+
+def test_the_kernels_cull_test_never_drops_a_hit():
+    """`_misses_sphere` (which lets a kernel program skip a geom) only where the sphere's own
+    ray test misses too, rays grazing the sphere and starting inside it included."""
+    rng = np.random.default_rng(4)
+    centres = rng.uniform(-1, 1, (4000, 3)).astype(np.float32)
+    radii = rng.uniform(0.01, 0.3, 4000).astype(np.float32)
+    vecs = rng.normal(size=(4000, 3)).astype(np.float32)
+    vecs /= np.linalg.norm(vecs, axis=1, keepdims=True)
+    # a third aimed at the sphere's rim: the line passes at distance radius * (1 +- 1e-4)
+    side = np.cross(vecs[:1333], rng.normal(size=(1333, 3)))
+    side /= np.linalg.norm(side, axis=1, keepdims=True)
+    rim = radii[:1333, None] * (1 + rng.uniform(-1e-4, 1e-4, (1333, 1))) * side
+    centres[:1333] = (rim + vecs[:1333] * rng.uniform(0.2, 1.5, (1333, 1))).astype(np.float32)
+    culled = np.array([bool(raycast._misses_sphere(c, float(r), v)) for c, r, v in zip(centres, radii, vecs)])
+    hits = np.isfinite(np.asarray(jax.vmap(lambda c, r, v: raycast.ray_sphere(jnp.stack([r, 0, 0]), -c, v))(
+        jnp.asarray(centres), jnp.asarray(radii), jnp.asarray(vecs))))
+    assert culled.sum() > 1000 and hits.sum() > 500
+    assert not (culled & hits).any()
