@@ -2,7 +2,7 @@
 
 `cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with
 `envs.raycast`'s tests: MJX's per-type tests written on components, and a convex mesh
-intersected as the polyhedron its face planes bound instead of triangle by triangle. On a GPU
+intersected as the polyhedron its face planes bound instead of triangle by triangle. On one GPU
 a view's rays are cast by one Pallas kernel (`cast_rays`), which gives the same hits.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
