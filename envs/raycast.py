@@ -217,7 +217,7 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
     nothing but the rays and the result goes through memory. A geom with a bounding sphere
     (`geom_rbound` > 0, as MuJoCo C's ray caster uses it) is skipped by a program whose rays
     all miss that sphere, where its test would give inf to each of them: the hits are
-    `nearest_hit`'s. They do not depend on `block`; 128 was the fastest on an H100
+    `nearest_hit`'s. They do not depend on `block`; 128 ran faster than 256 on an H100
     (BENCHMARKS.md). vmap adds the env axis to the grid. `interpret`: run the kernel's body
     as JAX operations (any backend; for tests)."""
     n_rays = vecs.shape[0]
@@ -243,7 +243,7 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
                 row = [table_ref[_GEOM_ROW * slot + k] for k in range(_GEOM_ROW)]
 
                 def test(row=row, test=group.test):
-                    local_vec = [row[i] * vec[0] + row[3 + i] * vec[1] + row[6 + i] * vec[2] for i in range(3)]
+                    local_vec = [dot3(row[i::3][:3], vec) for i in range(3)]  # xmat^T vec, as to_geom_frames
                     return test(row[12:15], row[9:12], local_vec)
 
                 if rbound[g] > 0:
