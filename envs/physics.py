@@ -38,7 +38,7 @@ import mujoco
 from mujoco import mjx
 from mujoco.mjx._src import forward as mjx_forward  # MJX's own implicitfast integrator step
 
-from envs import cholesky, scene
+from envs import scene
 
 INTEGRATORS = ("implicitfast", "euler", "rk4")
 SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL_CG}  # those MJX runs
@@ -84,12 +84,6 @@ class PhysicsConfig:
     # the physics instead of waiting for it), else the while loop. docs/benchmark.md has the
     # measurements.
     static_solver_loop: bool | None = None
-    # On a single GPU: MJX's dense Cholesky factorisations and solves (the Newton solver's
-    # Hessian each iteration, the mass matrix and the implicit integrator's matrix each step)
-    # as `envs.cholesky`'s kernels, one env per GPU thread, instead of XLA's cuSOLVER potrf and
-    # cuBLAS trsm. Elsewhere (a CPU, several devices, which would each run the whole batch's
-    # kernel) XLA's path. The same factors up to float rounding.
-    cholesky_kernel: bool = False
 
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
@@ -305,9 +299,8 @@ def step(m: mjx.Model, d: mjx.Data, cfg: PhysicsConfig = PhysicsConfig()) -> mjx
     """One physics step: `mjx.step`, or with `cfg.clamp_aware_implicit` under implicitfast,
     MJX's forward dynamics and implicit step with the clamped servos' velocity terms zeroed;
     MJX's sums over a body's children in `cfg`'s order (`summation_order`), its solver's loop
-    as `solver_loop` makes it, its Cholesky factorisations as `cfg.cholesky_kernel` says."""
-    kernels = cfg.cholesky_kernel and jax.default_backend() == "gpu" and jax.device_count() == 1
-    with summation_order(cfg), solver_loop(m, cfg), cholesky.dense_factorisations(kernels):
+    as `solver_loop` makes it."""
+    with summation_order(cfg), solver_loop(m, cfg):
         return _step(m, d, cfg)
 
 
