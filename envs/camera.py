@@ -2,7 +2,7 @@
 
 `cast` is MJX's ray caster (`mjx.ray`: the nearest hit over the visible geoms) with
 `envs.raycast`'s tests: MJX's per-type tests written on components, and a convex mesh
-intersected as the polyhedron its face planes bound instead of triangle by triangle. On one GPU
+intersected as the polyhedron its face planes bound instead of triangle by triangle. On a GPU
 a view's rays are cast by one Pallas kernel (`cast_rays`), which gives the same hits.
 
 Each pixel shows the colour of the first geom its ray hits, shaded by a Lambertian term
@@ -77,12 +77,14 @@ def cast(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vec: jnp.ndarray) -> tuple
 
 
 def cast_rays(m: mjx.Model, d: mjx.Data, pnt: jnp.ndarray, vecs: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """`cast` of rays [R, 3] from one origin: on a single GPU one Pallas kernel
+    """`cast` of rays [R, 3] from one origin: on a GPU one Pallas kernel
     (`raycast.nearest_hits_kernel`, the same hits), elsewhere `cast` vmapped over the rays.
-    With several devices an env batch is split over them by GSPMD, which cannot split a
-    kernel's call: it would gather every env's rays onto each device and cast them all there."""
+    With several devices the kernel runs only where a mesh is set for tracing (`jax.set_mesh`,
+    as the evaluator does), whose devices then each cast their share of a batch of envs
+    (`raycast.per_device_batching`); without one, GSPMD would gather every env's rays onto
+    each device and run the whole kernel there, so `cast` runs instead."""
     groups = raycast.ray_groups(m, visible_geoms(m))
-    if jax.default_backend() == "gpu" and jax.device_count() == 1:
+    if jax.default_backend() == "gpu" and (jax.device_count() == 1 or not jax.sharding.get_abstract_mesh().empty):
         return raycast.nearest_hits_kernel(m, d, groups, pnt, vecs)
     return jax.vmap(lambda v: raycast.nearest_hit(m, d, groups, pnt, v))(vecs)
 

@@ -260,10 +260,33 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
         gid_ref[...] = jnp.where(miss, -1, best_id)
 
     ray_block = pl.BlockSpec((block,), lambda i: (i,))
-    dist, gid = pl.pallas_call(
+    call = pl.pallas_call(
         kernel, grid=(padded // block,),
         in_specs=[pl.BlockSpec((table.size,), lambda i: (0,)), ray_block, ray_block, ray_block],
         out_specs=[ray_block, ray_block],
         out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32), jax.ShapeDtypeStruct((padded,), jnp.int32)],
-        interpret=interpret)(table, *comps)
+        interpret=interpret)
+    dist, gid = per_device_batching(call)(table, *comps)
     return dist[:n_rays], gid[:n_rays]
+
+
+def per_device_batching(fn):
+    """`fn` whose batching (vmap) runs the vmapped `fn` on each device's share of the batch
+    when a mesh is set for tracing (`jax.set_mesh`): the batch axis split over all of the
+    mesh's axes, as the evaluator splits its envs. A kernel's call is opaque to XLA's
+    partitioner (GSPMD), which would gather the whole batch onto every device and run all of
+    it there. Without a mesh, or with one device, plain vmap."""
+    wrapped = jax.custom_batching.custom_vmap(fn)
+
+    @wrapped.def_vmap
+    def rule(axis_size, in_batched, *args):
+        args = [x if batched else jnp.broadcast_to(x, (axis_size, *x.shape)) for x, batched in zip(args, in_batched)]
+        batched = jax.vmap(fn)
+        mesh = jax.sharding.get_abstract_mesh()
+        if not mesh.empty and mesh.size > 1:
+            spec = jax.sharding.PartitionSpec(mesh.axis_names)
+            batched = jax.shard_map(batched, in_specs=spec, out_specs=spec, check_vma=False)
+        out = batched(*args)
+        return out, jax.tree.map(lambda _: True, out)
+
+    return wrapped

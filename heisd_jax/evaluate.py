@@ -277,9 +277,10 @@ class BatchRollout:
             return _Staged(part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,
                                                        "store": time.perf_counter() - t0})
         t1 = time.perf_counter()
-        traced = fn.trace(*inputs)
-        t2 = time.perf_counter()
-        lowered = traced.lower()
+        with jax.set_mesh(self.mesh):  # the env's kernels split their batch as the envs are split
+            traced = fn.trace(*inputs)
+            t2 = time.perf_counter()
+            lowered = traced.lower()
         split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
         if self.store:
             split["store"] = t1 - t0

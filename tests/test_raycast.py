@@ -1,5 +1,12 @@
 """envs.raycast: each geom type's ray test against MJX's, the convex mesh test against the
-nearest triangle hit, and the reduction that keeps a ray's nearest geom."""
+nearest triangle hit, the reduction that keeps a ray's nearest geom, and the camera kernel's
+batch split over the devices of a mesh."""
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -136,3 +143,58 @@ def test_the_kernels_cull_test_never_drops_a_hit():
         jnp.asarray(centres), jnp.asarray(radii), jnp.asarray(vecs))))
     assert culled.sum() > 1000 and hits.sum() > 500
     assert not (culled & hits).any()
+
+
+# The camera kernel (by its interpreter) over 4 envs on 2 virtual CPU devices: without a mesh,
+# GSPMD gathers the batch onto each device; under `jax.set_mesh` each device casts its own envs.
+_SHARDED_SCRIPT = """
+import json
+import envs  # XLA CPU flags before JAX starts
+import jax, jax.numpy as jnp, numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from envs import camera, raycast, tasks
+from envs.env import EnvConfig, TabletopEnv
+
+env = TabletopEnv(tasks.get_tasks("all", ["pick_red_block"]), EnvConfig(render=False))
+m, cam = env.model, env.mj_model.camera("agentview")
+ids = np.zeros(4, np.int32)
+d = jax.jit(jax.vmap(env.reset))(env.initial_state_keys(ids, np.arange(4)), jnp.asarray(ids)).data
+groups = raycast.ray_groups(m, camera.visible_geoms(m))
+rays = jnp.asarray(camera.pixel_rays(16, 16, float(cam.fovy[0]))).reshape(-1, 3)
+
+def hits(d):  # the rays turned with each env's camera (batched) and as they are (not batched)
+    turned = rays @ d.cam_xmat[cam.id].reshape(3, 3).T
+    return [raycast.nearest_hits_kernel(m, d, groups, d.cam_xpos[cam.id], v, block=256, interpret=True)
+            for v in (turned, rays)]
+
+want = jax.jit(jax.vmap(hits))(d)
+mesh = Mesh(np.asarray(jax.devices()), ("envs",))
+split = jax.device_put(d, NamedSharding(mesh, P("envs")))
+out = {"devices": jax.device_count()}
+for name in ("no mesh", "mesh"):
+    fn = jax.jit(jax.vmap(hits))
+    if name == "mesh":
+        with jax.set_mesh(mesh):
+            compiled = fn.trace(split).lower().compile()
+    else:
+        compiled = fn.trace(split).lower().compile()
+    got = compiled(split)
+    out[name] = {"all_gather": "all-gather" in compiled.as_text(),
+                 "equal": all(bool((np.asarray(a) == np.asarray(b)).all())
+                              for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want))),
+                 "split_output": not got[0][1].sharding.is_fully_replicated}
+print("RESULT " + json.dumps(out))
+"""
+
+
+def test_the_kernel_splits_its_batch_over_the_devices_of_a_mesh():
+    flags = os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
+    proc = subprocess.run([sys.executable, "-c", _SHARDED_SCRIPT], cwd=Path(__file__).resolve().parents[1],
+                          env=dict(os.environ, XLA_FLAGS=flags.strip(), JAX_PLATFORMS="cpu"),
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    (line,) = [l for l in proc.stdout.splitlines() if l.startswith("RESULT ")]
+    out = json.loads(line[len("RESULT "):])
+    assert out["devices"] == 2
+    assert out["no mesh"] == {"all_gather": True, "equal": True, "split_output": False}  # what the rule avoids
+    assert out["mesh"] == {"all_gather": False, "equal": True, "split_output": True}
