@@ -28,6 +28,7 @@ import mujoco
 import numpy as np
 from jax import lax
 from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as pltriton
 from mujoco.mjx._src.math import safe_div
 from mujoco.mjx._src.ray import _ray_quad
 
@@ -265,7 +266,9 @@ def nearest_hits_kernel(m, d, groups: tuple[RayGroup, ...], pnt: jnp.ndarray, ve
         in_specs=[pl.BlockSpec((table.size,), lambda i: (0,)), ray_block, ray_block, ray_block],
         out_specs=[ray_block, ray_block],
         out_shape=[jax.ShapeDtypeStruct((padded,), jnp.float32), jax.ShapeDtypeStruct((padded,), jnp.int32)],
-        interpret=interpret)
+        # Triton, named: JAX's default GPU backend for Pallas is Mosaic GPU wherever it imports,
+        # which takes no vmapped grid
+        compiler_params=pltriton.CompilerParams(), interpret=interpret)
     dist, gid = per_device_batching(call)(table, *comps)
     return dist[:n_rays], gid[:n_rays]
 
