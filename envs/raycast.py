@@ -278,7 +278,8 @@ def per_device_batching(fn):
     when a mesh is set for tracing (`jax.set_mesh`): the batch axis split over all of the
     mesh's axes, as the evaluator splits its envs. A kernel's call is opaque to XLA's
     partitioner (GSPMD), which would gather the whole batch onto every device and run all of
-    it there. Without a mesh, or with one device, plain vmap."""
+    it there. Without a mesh, with one device, or for a batch the mesh does not divide (a
+    queue's resets), plain vmap."""
     wrapped = jax.custom_batching.custom_vmap(fn)
 
     @wrapped.def_vmap
@@ -286,7 +287,7 @@ def per_device_batching(fn):
         args = [x if batched else jnp.broadcast_to(x, (axis_size, *x.shape)) for x, batched in zip(args, in_batched)]
         batched = jax.vmap(fn)
         mesh = jax.sharding.get_abstract_mesh()
-        if not mesh.empty and mesh.size > 1:
+        if not mesh.empty and mesh.size > 1 and axis_size % mesh.size == 0:
             spec = jax.sharding.PartitionSpec(mesh.axis_names)
             batched = jax.shard_map(batched, in_specs=spec, out_specs=spec, check_vma=False)
         out = batched(*args)

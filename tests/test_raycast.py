@@ -183,6 +183,11 @@ for name in ("no mesh", "mesh"):
                  "equal": all(bool((np.asarray(a) == np.asarray(b)).all())
                               for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want))),
                  "split_output": not got[0][1].sharding.is_fully_replicated}
+odd = jax.tree.map(lambda x: x[:3], d)  # 3 envs: the mesh does not divide them
+with jax.set_mesh(mesh):
+    got = jax.jit(jax.vmap(hits))(odd)
+out["3 envs"] = all(bool((np.asarray(a) == np.asarray(b)[:3]).all())
+                    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)))
 print("RESULT " + json.dumps(out))
 """
 
@@ -198,3 +203,4 @@ def test_the_kernel_splits_its_batch_over_the_devices_of_a_mesh():
     assert out["devices"] == 2
     assert out["no mesh"] == {"all_gather": True, "equal": True, "split_output": False}  # what the rule avoids
     assert out["mesh"] == {"all_gather": False, "equal": True, "split_output": True}
+    assert out["3 envs"]  # a batch the mesh does not divide: plain vmap, the same hits
