@@ -4,6 +4,11 @@
 #   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
 #   bash experiments/gpu_job.sh start -- CMD [ARGS...] [-- CMD ...]  # the same in the background
 #   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
+#   bash experiments/gpu_job.sh stop [PATH...]                        # end the job, report, pack results
+#
+# GPU_JOB_STEP_TIMEOUT=SECONDS (in start's environment, or the foreground's) ends any one
+# command that runs longer (logged as "== timed out"), and the job goes on to the next: a
+# command that hangs (say, a kernel's compile) then costs at most that much device time.
 #
 # Each command's output is teed to job.log in the folder that comes back, which a command
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
@@ -18,7 +23,7 @@ SELF=$(realpath "$0")
 cd "$(dirname "$SELF")/.."  # repo root
 WORK=/tmp/gpu_job SITE=/tmp/site
 export PYTHONPATH=$SITE PYTHONUNBUFFERED=1 JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$WORK/jax_cache}
-usage() { echo "usage: $0 [start] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...]" >&2; exit 2; }
+usage() { echo "usage: $0 [start] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
 
 install() {
   [ -n "${GPU_JOB_SITE_READY:-}" ] && return
@@ -33,8 +38,14 @@ run() {  # runs the commands separated by `--` one after another; exits with the
     if [ "$arg" != "--" ]; then cmd+=("${arg//\$OUT/$OUT}"); continue; fi
     [ ${#cmd[@]} -eq 0 ] && continue
     echo "== $(date -u +%FT%TZ) ${cmd[*]}" | tee -a "$OUT/job.log"
-    "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+    if [ -n "${GPU_JOB_STEP_TIMEOUT:-}" ]; then
+      timeout --kill-after=10 "$GPU_JOB_STEP_TIMEOUT" "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+    else
+      "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+    fi
     local s=${PIPESTATUS[0]}; [ "$s" -ne 0 ] && rc=$s
+    [ "$s" -eq 124 ] || [ "$s" -eq 137 ] && [ -n "${GPU_JOB_STEP_TIMEOUT:-}" ] && \
+      echo "== timed out after ${GPU_JOB_STEP_TIMEOUT}s" | tee -a "$OUT/job.log"
     echo "== exit $s" | tee -a "$OUT/job.log"
     cmd=()
   done
@@ -71,16 +82,23 @@ case "${1:-}" in
     echo $! > "$WORK/pid"
     sleep 20; tail -n 20 "$WORK/out/job.log" 2>/dev/null
     ;;
-  poll)
-    [[ "${2:-}" =~ ^[0-9]+$ ]] || usage
+  poll|stop)
     [ -f "$WORK/pid" ] || { echo "no background job: start one first" >&2; exit 1; }
-    end=$(( $(date +%s) + $2 ))
-    while [ "$(date +%s)" -lt "$end" ] && kill -0 "$(cat "$WORK/pid")" 2>/dev/null; do sleep 10; done
-    kill -0 "$(cat "$WORK/pid")" 2>/dev/null && echo "RUNNING" || echo "ENDED"
+    pid=$(cat "$WORK/pid")
+    if [ "$1" = poll ]; then
+      [[ "${2:-}" =~ ^[0-9]+$ ]] || usage
+      end=$(( $(date +%s) + $2 )); shift 2
+      while [ "$(date +%s)" -lt "$end" ] && kill -0 "$pid" 2>/dev/null; do sleep 10; done
+    else
+      shift
+      kill -0 "$pid" 2>/dev/null && { kill -- "-$pid" 2>/dev/null; sleep 5; kill -9 -- "-$pid" 2>/dev/null; \
+        echo "== stopped $(date -u +%FT%TZ)" >> "$WORK/out/job.log"; }
+    fi
+    kill -0 "$pid" 2>/dev/null && echo "RUNNING" || echo "ENDED"
     tail -c 6000 "$WORK/out/job.log"
     nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
     cat "$WORK"/out/*/build.json 2>/dev/null
-    pack "${@:3}"; ls -la "$OUT"
+    pack "$@"; ls -la "$OUT"
     ;;
   *)
     usage
