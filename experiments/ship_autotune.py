@@ -9,7 +9,9 @@ and `--xla_gpu_dump_autotune_results_to`). The file and its record (`.json` besi
 jax/jaxlib/plugin versions, the GPU, the commands, commit and date) are written only when
 every compile succeeded, replacing the old pair. `import envs` loads the file on a GPU when the
 installed versions are the recorded ones (envs/_xla.py). Run it on the GPU the results are for;
-`--extend` keeps the entries already shipped (another GPU model's, or other batch sizes').
+`--extend` keeps the entries already shipped (another GPU model's, or other batch sizes'): XLA
+keys each entry by GPU model, so one file serves every model it holds entries for, and the
+record lists each program with the GPU it was tuned on.
 """
 
 from __future__ import annotations
@@ -37,6 +39,13 @@ flags.DEFINE_integer("num_envs", 0, "As experiments.evaluate's --num_envs (the p
 cli.define_tail_flag()  # a tail's programs are compiled (and autotuned) beside the head's
 flags.DEFINE_bool("extend", False, "Start from the shipped entries (another GPU's, other batch sizes') instead of none.")
 flags.DEFINE_string("out", str(_xla.SHIPPED_AUTOTUNE), "The results file (XLA text proto); its record is OUT with .json.")
+
+def kept_programs(record: dict) -> list[dict]:
+    """The programs (device, command) whose entries a record's file holds; a record written
+    before it named each program's device (one "device" for all) is read as that device's."""
+    return [p if isinstance(p, dict) else {"device": record.get("device", "unknown"), "command": p}
+            for p in record.get("programs", [])]
+
 
 def main(argv):
     del argv
@@ -72,11 +81,13 @@ def main(argv):
         text = Path(load).read_text()
         entries = sum(line.startswith("entries {") for line in text.splitlines())
         made = results_io.provenance(cli.command_line())  # the device: JAX starts here, once the children are done
+        programs = [{"device": made["device"], "command": c} for c in commands]
         if FLAGS.extend and out.with_suffix(".json").is_file():  # the programs of the entries kept
-            old = json.loads(out.with_suffix(".json").read_text())
-            commands = [c for c in old.get("programs", []) if c not in commands] + commands
-        record = {"versions": _xla.jax_versions(), "device": made["device"], "entries": entries, "programs": commands,
-                  "extended": FLAGS.extend, "command": made["command"], "commit": made["commit"], "date": made["date"]}
+            programs = [p for p in kept_programs(json.loads(out.with_suffix(".json").read_text()))
+                        if p not in programs] + programs
+        record = {"versions": _xla.jax_versions(), "devices": sorted({p["device"] for p in programs}),
+                  "entries": entries, "programs": programs, "extended": FLAGS.extend, "command": made["command"],
+                  "commit": made["commit"], "date": made["date"]}
         out.parent.mkdir(parents=True, exist_ok=True)
         staged = out.with_name(f".{out.name}.tmp-{os.getpid()}")
         shutil.copyfile(load, staged)
