@@ -93,7 +93,7 @@ def main(argv):
         shutil.copyfile(load, staged)
         os.replace(staged, out)
         results_io.write_json_atomic(out.with_suffix(".json"), record)
-    print(f"{entries} autotuning results for {record['device']} ({record['versions']}): {out}")
+    print(f"{entries} autotuning results for {', '.join(record['devices'])} ({record['versions']}): {out}")
 
 
 if __name__ == "__main__":
