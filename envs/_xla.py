@@ -75,6 +75,13 @@ def shipped_autotune(path: Path | None = None) -> Path | None:
     return path
 
 
+def record_programs(record: dict) -> list[dict]:
+    """The programs ({"device", "command"}) whose entries a shipped-results record's file holds;
+    a record made before it named each program's GPU (one "device" for all) is read as that GPU's."""
+    return [p if isinstance(p, dict) else {"device": record.get("device", "unknown"), "command": p}
+            for p in record.get("programs", [])]
+
+
 def with_autotune_files(load: str, dump: str, flags: str = "") -> str:
     """XLA_FLAGS `flags` (e.g. the caller's) with any autotuning-results load or dump setting
     replaced by these (`experiments/ship_autotune.py`)."""

@@ -40,13 +40,6 @@ cli.define_tail_flag()  # a tail's programs are compiled (and autotuned) beside 
 flags.DEFINE_bool("extend", False, "Start from the shipped entries (another GPU's, other batch sizes') instead of none.")
 flags.DEFINE_string("out", str(_xla.SHIPPED_AUTOTUNE), "The results file (XLA text proto); its record is OUT with .json.")
 
-def kept_programs(record: dict) -> list[dict]:
-    """The programs (device, command) whose entries a record's file holds; a record written
-    before it named each program's device (one "device" for all) is read as that device's."""
-    return [p if isinstance(p, dict) else {"device": record.get("device", "unknown"), "command": p}
-            for p in record.get("programs", [])]
-
-
 def main(argv):
     del argv
     unknown = [m for m in FLAGS.methods if m not in methods.METHODS]
@@ -83,7 +76,7 @@ def main(argv):
         made = results_io.provenance(cli.command_line())  # the device: JAX starts here, once the children are done
         programs = [{"device": made["device"], "command": c} for c in commands]
         if FLAGS.extend and out.with_suffix(".json").is_file():  # the programs of the entries kept
-            programs = [p for p in kept_programs(json.loads(out.with_suffix(".json").read_text()))
+            programs = [p for p in _xla.record_programs(json.loads(out.with_suffix(".json").read_text()))
                         if p not in programs] + programs
         record = {"versions": _xla.jax_versions(), "devices": sorted({p["device"] for p in programs}),
                   "entries": entries, "programs": programs, "extended": FLAGS.extend, "command": made["command"],

@@ -74,4 +74,14 @@ def test_the_shipped_record_describes_the_shipped_file():
     text = _xla.SHIPPED_AUTOTUNE.read_text()
     assert record["entries"] == sum(line.startswith("entries {") for line in text.splitlines()) > 0
     assert "jaxlib==" in record["versions"] and "jax-cuda" in record["versions"]
-    assert record["device"] and record["programs"]
+    assert record["programs"] and record["devices"] == sorted({p["device"] for p in record["programs"]})
+    assert all(p["command"].startswith("python -m experiments.evaluate ") for p in record["programs"])
+
+
+def test_a_record_of_one_gpu_reads_as_that_gpus_programs():
+    old = {"device": "NVIDIA H100 80GB HBM3", "programs": ["python -m experiments.evaluate --method=ar"]}
+    new = {"devices": ["NVIDIA H200"], "programs": [{"device": "NVIDIA H200", "command": "python -m x"}]}
+    assert _xla.record_programs(old) == [{"device": "NVIDIA H100 80GB HBM3",
+                                          "command": "python -m experiments.evaluate --method=ar"}]
+    assert _xla.record_programs(new) == new["programs"]
+    assert _xla.record_programs({}) == []
