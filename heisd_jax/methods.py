@@ -79,7 +79,9 @@ class ARSettings:
                                      "tensor cores for some shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': "
                                      "that tensor-core algorithm for every product, float32 accumulation; 'tf32x3' "
                                      "(GPUs), 'bf16x3', 'bf16x6', 'bf16x9' (GPUs): 3 to 9 such products per product, "
-                                     "near float32's rounding.",
+                                     "near float32's rounding; 'tf32_rounded': every operand rounded to TF32 first, "
+                                     "then TF32 tensor cores (GPUs) or float32, whose products are then exact, so "
+                                     "every kernel forms the same ones.",
                                      vla.MATMUL_PRECISIONS)
     unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
                             "unrolled: one straight-line program per pass instead of a loop the host drives layer by "

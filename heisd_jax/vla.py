@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from heisd_jax import rounded_products
 from heisd_jax.observation import PAD_ID, TEXT_LEN, TEXT_VOCAB, Observation
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
@@ -109,12 +110,15 @@ class VLAConfig:
 # same kind of kernel at every shape. "tf32x3", "bf16x3", "bf16x6", "bf16x9": each input split
 # into a sum of 2 or 3 such terms and 3, 6 or 9 tensor-core products of them summed, close to
 # float32's rounding (arXiv 1904.06376); on an H100 none is both faster than "float32" and
-# batch-invariant (BENCHMARKS.md).
+# batch-invariant (BENCHMARKS.md). "tf32_rounded": every product's operands rounded to TF32
+# first (`rounded_products`), then TF32 tensor cores on a GPU and float32 elsewhere: the
+# products are exact in either, so every kernel forms the same ones, whichever a shape gets.
 _PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32",
                        "tf32x3": "TF32_TF32_F32_X3", "bf16x3": "BF16_BF16_F32_X3", "bf16x6": "BF16_BF16_F32_X6",
-                       "bf16x9": "BF16_BF16_F32_X9"}
+                       "bf16x9": "BF16_BF16_F32_X9", "tf32_rounded": "TF32_TF32_F32"}
 MATMUL_PRECISIONS = tuple(_PRECISION_SETTINGS)
 _GPU_ONLY = ("tf32", "tf32x3", "bf16x9")  # XLA's CPU backend has no such algorithm
+_ROUNDED_OPERANDS = {"tf32_rounded": rounded_products.with_tf32_operands}  # precision -> fn transform
 
 
 def at_config_precision(fn):
@@ -123,13 +127,18 @@ def at_config_precision(fn):
 
     @functools.wraps(fn)
     def wrapped(params, cfg: VLAConfig, *args, **kwargs):
-        setting = _PRECISION_SETTINGS[cfg.matmul_precision] if jnp.dtype(cfg.dtype) == jnp.float32 else None
-        if setting and cfg.matmul_precision in _GPU_ONLY and jax.default_backend() != "gpu":
+        float32 = jnp.dtype(cfg.dtype) == jnp.float32
+        setting = _PRECISION_SETTINGS[cfg.matmul_precision] if float32 else None
+        on_gpu = jax.default_backend() == "gpu"
+        if setting and cfg.matmul_precision in _GPU_ONLY and not on_gpu:
             raise ValueError(f'matmul_precision "{cfg.matmul_precision}" needs a GPU (the backend is '
                              f"{jax.default_backend()}); valid here: "
                              f"{', '.join(p for p in MATMUL_PRECISIONS if p not in _GPU_ONLY)}")
+        rounded = _ROUNDED_OPERANDS.get(cfg.matmul_precision) if float32 else None
+        if rounded and not on_gpu:
+            setting = "float32"  # no TF32 units: the rounded operands' exact products in float32
         with jax.default_matmul_precision(setting) if setting else contextlib.nullcontext():
-            return fn(params, cfg, *args, **kwargs)
+            return (rounded(fn) if rounded else fn)(params, cfg, *args, **kwargs)
 
     return wrapped
 
