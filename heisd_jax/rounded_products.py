@@ -30,15 +30,23 @@ _TF32_DROPPED_BITS = 13  # float32 keeps 23 fraction bits, TF32 10
 _ROUNDED_PRIMITIVES = ("dot_general", "conv_general_dilated")  # their first two operands are the factors
 
 
+@jax.custom_jvp
 def round_to_tf32(x: jnp.ndarray) -> jnp.ndarray:
     """Each float32 value to the nearest value with a 10-bit fraction (ties to even), as
-    float32; infinities and NaNs unchanged, a value past TF32's largest finite to infinity."""
+    float32; infinities and NaNs unchanged, a value past TF32's largest finite to infinity.
+    Differentiated as the identity (a straight-through estimate), so a rounded model trains."""
     bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
     half = jnp.uint32((1 << (_TF32_DROPPED_BITS - 1)) - 1)
     lsb = (bits >> _TF32_DROPPED_BITS) & jnp.uint32(1)
     rounded = (bits + half + lsb) & jnp.uint32(~((1 << _TF32_DROPPED_BITS) - 1) & 0xFFFFFFFF)
     finite = (bits & jnp.uint32(0x7F800000)) != jnp.uint32(0x7F800000)
     return jax.lax.bitcast_convert_type(jnp.where(finite, rounded, bits), jnp.float32)
+
+
+@round_to_tf32.defjvp
+def _round_to_tf32_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return round_to_tf32(x), dx
 
 
 def _round_operand(x):

@@ -77,16 +77,26 @@ def test_method_setting_reaches_the_config():
     assert cfg.unroll and not methods.ARSettings().unroll and methods.check_settings("ar", {"unroll": "true"})["unroll"]
 
 
+def _is_rounding(eqn) -> bool:
+    """Whether eqn is `rounded_products.round_to_tf32`: its custom-derivative call whose
+    result a bitcast to float32 makes."""
+    if eqn is None or eqn.primitive.name != "custom_jvp_call":
+        return False
+    inner = eqn.params["call_jaxpr"].jaxpr
+    made_by = {v: e for e in inner.eqns for v in e.outvars}
+    last = made_by.get(inner.outvars[0])
+    return last is not None and last.primitive.name == "bitcast_convert_type" and last.params["new_dtype"] == np.float32
+
+
 def _unrounded_operands(jaxpr) -> tuple[int, int]:
-    """(float32 products and convolutions, those with an operand not made by a bitcast to
-    float32, i.e. not rounded just before) over a jaxpr and every program nested in it."""
+    """(float32 products and convolutions, those with an operand not rounded to TF32 just
+    before) over a jaxpr and every program nested in it."""
     made_by = {v: e for e in jaxpr.eqns for v in e.outvars}
     total = unrounded = 0
     for e in jaxpr.eqns:
         if e.primitive.name in ("dot_general", "conv_general_dilated") and e.invars[0].aval.dtype == np.float32:
             total += 1
-            unrounded += any(isinstance(v, jcore.Literal) or made_by.get(v) is None
-                             or made_by[v].primitive.name != "bitcast_convert_type" for v in e.invars[:2])
+            unrounded += any(isinstance(v, jcore.Literal) or not _is_rounding(made_by.get(v)) for v in e.invars[:2])
         for sub in jcore.jaxprs_in_params(e.params):
             t, u = _unrounded_operands(sub)
             total, unrounded = total + t, unrounded + u

@@ -1,6 +1,7 @@
 """`rounded_products`: TF32 rounding of float32 values (nearest, ties to even, non-finite
-values kept), exact products of rounded operands, and a function transform that rounds every
-product's operands, inside scans, while loops and conditionals too."""
+values kept, differentiated as the identity), exact products of rounded operands, and a
+function transform that rounds every product's operands, inside scans, while loops and
+conditionals too."""
 
 import jax
 import jax.numpy as jnp
@@ -83,3 +84,10 @@ def test_non_array_arguments_pass_through_and_integer_products_are_left_alone():
     got = rp.with_tf32_operands(fn)(x, 5, scale=2)
     np.testing.assert_array_equal(np.asarray(got["f"]), np.full((2, 2), 6.0, np.float32))
     assert int(got["i"]) == 30
+
+
+def test_a_rounded_product_differentiates_through_the_rounding_as_the_identity():
+    a = jax.random.normal(jax.random.key(6), (3, 5))
+    b = jax.random.normal(jax.random.key(7), (5, 2))
+    grad_a = jax.grad(lambda a: rp.with_tf32_operands(lambda a, b: (a @ b).sum())(a, b))(a)
+    np.testing.assert_array_equal(np.asarray(grad_a), np.asarray(jnp.ones((3, 2)) @ rp.round_to_tf32(b).T))
