@@ -1,11 +1,13 @@
 """Matrix products whose float32 operands are first rounded to TF32, so that every kernel forms
 the same products.
 
-Why: XLA and cuBLAS choose a kernel per shape. Allowed TF32, a GPU runs large products on TF32
-tensor cores (operands cut to an 11-bit significand) and small ones (a batch-1 decode's
-matrix-vector products) on float32 units, so one state's logits differ between batch sizes
-and between a single-token pass and a tree pass by ~1e-3, enough to flip a near-tied greedy
-token (BENCHMARKS.md, the target's matrix-product precision). Rounding each operand to the
+Why: XLA and cuBLAS choose a kernel per shape. Allowed TF32, a GPU can run large products on
+TF32 tensor cores (operands cut to an 11-bit significand) and small ones (a batch-1 decode's
+matrix-vector products) on float32 units, where tensor cores do not pay; then one state's
+logits differ between batch sizes, and between a single-token pass and a tree pass, by TF32's
+rounding, enough to flip a near-tied greedy token (a likely cause of the pinned "tf32"
+algorithm's batch-1 / batch-256 disagreement: BENCHMARKS.md, the target's matrix-product
+precision; docs/target.md says what is measured). Rounding each operand to the
 nearest TF32 value first makes the kernel's choice irrelevant to the products: a product of
 two 11-bit significands is exact in float32 (22 bits), on a tensor core or not, so kernels
 differ only in the order they sum, as full-float32 kernels do, and tensor cores still run the
@@ -54,6 +56,8 @@ def _round_operand(x):
 
 
 def _eval(jaxpr: jcore.Jaxpr, consts, args):
+    """Evaluates jaxpr on args (binding each equation into the caller's trace) with the
+    factors of every product rounded and its nested programs transformed alike."""
     env = {}
 
     def read(v):
@@ -78,6 +82,7 @@ def _eval(jaxpr: jcore.Jaxpr, consts, args):
 
 
 def _transform_closed(closed: jcore.ClosedJaxpr) -> jcore.ClosedJaxpr:
+    """The same program with its products' factors rounded, and the same signature."""
     avals = [v.aval for v in closed.jaxpr.invars]
     new = jax.make_jaxpr(lambda *a: _eval(closed.jaxpr, closed.consts, a))(*avals)
     if [v.aval for v in new.jaxpr.invars] != avals or new.out_avals != closed.out_avals:
