@@ -17,7 +17,8 @@ nothing there and autotunes as usual. An explicit setting (`--xla_gpu_load_autot
 turns it off) is respected.
 Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag they do not
 know, although its name still appears in their binaries. So whether each flag is accepted
-is probed once, in a child process that starts JAX's backends with it, and the answer is
+is probed once, in a child process that starts JAX's backends with it (the flags together,
+one by one only where that fails: each probe costs a backend start), and the answer is
 cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS
 are kept; an explicit setting of either flag is respected.
 """
@@ -99,14 +100,22 @@ def _probe(flags: str) -> bool:
     return r.returncode == 0
 
 
-def flag_supported(name: str, value: str) -> bool:
-    key = f"--{name}={value}|{_fingerprint()}"
+def supported(flags: dict[str, str]) -> dict[str, bool]:
+    """Which of `flags` (name -> value) the installed XLA accepts, each answer cached per
+    installed jax/jaxlib/plugin versions and JAX_PLATFORMS. The flags not cached yet are probed
+    together in one child process (a probe starts JAX's backends: seconds on a GPU machine, a
+    fresh one's first run), and one by one only where that fails."""
+    keys = {name: f"--{name}={value}|{_fingerprint()}" for name, value in flags.items()}
     try:
         cache = json.loads(_CACHE.read_text())
     except (OSError, ValueError):
         cache = {}
-    if key not in cache:
-        cache[key] = _probe(f"--{name}={value}")
+    todo = [name for name in flags if keys[name] not in cache]
+    if todo:
+        if len(todo) > 1 and _probe(" ".join(f"--{name}={flags[name]}" for name in todo)):
+            cache.update({keys[name]: True for name in todo})
+        else:
+            cache.update({keys[name]: _probe(f"--{name}={flags[name]}") for name in todo})
         try:
             _CACHE.parent.mkdir(parents=True, exist_ok=True)
             tmp = _CACHE.with_suffix(f".tmp{os.getpid()}")
@@ -114,14 +123,14 @@ def flag_supported(name: str, value: str) -> bool:
             os.replace(tmp, _CACHE)
         except OSError:
             pass
-    return bool(cache[key])
+    return {name: bool(cache[keys[name]]) for name in flags}
 
 
 def configure() -> None:
-    for name, value in FLAGS.items():
-        current = os.environ.get("XLA_FLAGS", "")
-        if name not in current and flag_supported(name, value):
-            os.environ["XLA_FLAGS"] = (current + f" --{name}={value}").strip()
+    wanted = {name: value for name, value in FLAGS.items() if name not in os.environ.get("XLA_FLAGS", "")}
+    for name, ok in supported(wanted).items():
+        if ok:
+            os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" --{name}={wanted[name]}").strip()
     current = os.environ.get("XLA_FLAGS", "")
     path = shipped_autotune()
     if path is not None and AUTOTUNE_FLAG not in current:

@@ -49,7 +49,7 @@ def test_not_loaded_without_its_record(shipped):
 @pytest.mark.parametrize("user", ["", "--xla_gpu_load_autotune_results_from=", "--xla_gpu_load_autotune_results_from=/mine.pbtxt"])
 def test_configure_adds_the_flag_unless_the_user_set_it(shipped, monkeypatch, user):
     monkeypatch.setattr(_xla, "SHIPPED_AUTOTUNE", shipped)
-    monkeypatch.setattr(_xla, "flag_supported", lambda name, value: True)
+    monkeypatch.setattr(_xla, "supported", lambda flags: {name: True for name in flags})
     monkeypatch.setenv("XLA_FLAGS", user)
     _xla.configure()
     flags = _xla.os.environ["XLA_FLAGS"].split()
@@ -85,3 +85,19 @@ def test_a_record_of_one_gpu_reads_as_that_gpus_programs():
                                           "command": "python -m experiments.evaluate --method=ar"}]
     assert _xla.record_programs(new) == new["programs"]
     assert _xla.record_programs({}) == []
+
+
+def test_flags_are_probed_together_once_and_one_by_one_only_where_that_fails(tmp_path, monkeypatch):
+    monkeypatch.setattr(_xla, "_CACHE", tmp_path / "xla_flag.json")
+    probes = []
+
+    def probe(flags):  # this XLA knows every flag but --b
+        probes.append(flags)
+        return "--b=" not in flags
+    monkeypatch.setattr(_xla, "_probe", probe)
+    assert _xla.supported({"a": "1", "c": "2"}) == {"a": True, "c": True}
+    assert probes == ["--a=1 --c=2"]  # one child process for both
+    assert _xla.supported({"a": "1", "b": "0", "d": "3"}) == {"a": True, "b": False, "d": True}
+    assert probes[1:] == ["--b=0 --d=3", "--b=0", "--d=3"]  # --a cached; together failed: one by one
+    assert _xla.supported({"d": "3", "b": "0", "a": "1"}) == {"d": True, "b": False, "a": True}
+    assert len(probes) == 4  # every answer cached
