@@ -15,7 +15,7 @@ large products.
 
 `with_tf32_operands(fn)` traces fn to a jaxpr and evaluates it with every float32
 `dot_general` and `conv_general_dilated` operand rounded, inside the bodies of scans, while
-loops and conditionals too, so a model needs no change (`vla.at_config_precision` applies it
+loops, conditionals and checkpoints too, so a model needs no change (`vla.at_config_precision` applies it
 for `VLAConfig.matmul_precision = "tf32_rounded"`).
 """
 
@@ -29,6 +29,8 @@ import jax.numpy as jnp
 import numpy as np
 
 _TF32_DROPPED_BITS = 13  # float32 keeps 23 fraction bits, TF32 10
+_TF32_KEPT = 0xFFFFFFFF & ~((1 << _TF32_DROPPED_BITS) - 1)  # sign, exponent and TF32's fraction bits
+_EXPONENT = 0x7F800000
 _ROUNDED_PRIMITIVES = ("dot_general", "conv_general_dilated")  # their first two operands are the factors
 
 
@@ -40,8 +42,8 @@ def round_to_tf32(x: jnp.ndarray) -> jnp.ndarray:
     bits = jax.lax.bitcast_convert_type(x, jnp.uint32)
     half = jnp.uint32((1 << (_TF32_DROPPED_BITS - 1)) - 1)
     lsb = (bits >> _TF32_DROPPED_BITS) & jnp.uint32(1)
-    rounded = (bits + half + lsb) & jnp.uint32(~((1 << _TF32_DROPPED_BITS) - 1) & 0xFFFFFFFF)
-    finite = (bits & jnp.uint32(0x7F800000)) != jnp.uint32(0x7F800000)
+    rounded = (bits + half + lsb) & jnp.uint32(_TF32_KEPT)
+    finite = (bits & jnp.uint32(_EXPONENT)) != jnp.uint32(_EXPONENT)
     return jax.lax.bitcast_convert_type(jnp.where(finite, rounded, bits), jnp.float32)
 
 

@@ -118,7 +118,6 @@ _PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32
                        "bf16x9": "BF16_BF16_F32_X9", "tf32_rounded": "TF32_TF32_F32"}
 MATMUL_PRECISIONS = tuple(_PRECISION_SETTINGS)
 _GPU_ONLY = ("tf32", "tf32x3", "bf16x9")  # XLA's CPU backend has no such algorithm
-_ROUNDED_OPERANDS = {"tf32_rounded": rounded_products.with_tf32_operands}  # precision -> fn transform
 
 
 def at_config_precision(fn):
@@ -134,11 +133,11 @@ def at_config_precision(fn):
             raise ValueError(f'matmul_precision "{cfg.matmul_precision}" needs a GPU (the backend is '
                              f"{jax.default_backend()}); valid here: "
                              f"{', '.join(p for p in MATMUL_PRECISIONS if p not in _GPU_ONLY)}")
-        rounded = _ROUNDED_OPERANDS.get(cfg.matmul_precision) if float32 else None
+        rounded = float32 and cfg.matmul_precision == "tf32_rounded"
         if rounded and not on_gpu:
             setting = "float32"  # no TF32 units: the rounded operands' exact products in float32
         with jax.default_matmul_precision(setting) if setting else contextlib.nullcontext():
-            return (rounded(fn) if rounded else fn)(params, cfg, *args, **kwargs)
+            return (rounded_products.with_tf32_operands(fn) if rounded else fn)(params, cfg, *args, **kwargs)
 
     return wrapped
 

@@ -1,7 +1,7 @@
 """`rounded_products`: TF32 rounding of float32 values (nearest, ties to even, non-finite
 values kept, differentiated as the identity), exact products of rounded operands, and a
-function transform that rounds every product's operands, inside scans, while loops and
-conditionals too."""
+function transform that rounds every product's operands, inside scans, while loops,
+conditionals and checkpoints too."""
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +51,7 @@ def _program(a, w):
     y, _ = jax.lax.scan(body, a, None, length=3)
     z = jax.lax.while_loop(lambda c: c[1] < 2, lambda c: (c[0] @ w, c[1] + 1), (y, 0))[0]
     z = jax.lax.cond(z.sum() > 0, lambda q: q @ w, lambda q: -q @ w, z)
+    z = jax.checkpoint(lambda q: jnp.sin(q @ w))(z)  # an open sub-program
     return {"out": z, "conv": jax.lax.conv(a[None, None], w[None, None, :4, :4], (1, 1), "VALID")}
 
 
@@ -62,6 +63,7 @@ def _by_hand(a, w):
     for _ in range(2):
         c = r(c) @ r(w)
     c = r(c) @ r(w) if c.sum() > 0 else r(-c) @ r(w)
+    c = jnp.sin(r(c) @ r(w))
     return {"out": c, "conv": jax.lax.conv(r(a)[None, None], r(w)[None, None, :4, :4], (1, 1), "VALID")}
 
 
