@@ -15,8 +15,8 @@ large products.
 
 `with_tf32_operands(fn)` traces fn to a jaxpr and evaluates it with every float32
 `dot_general` and `conv_general_dilated` operand rounded, inside the bodies of scans, while
-loops, conditionals and checkpoints too, so a model needs no change (`vla.at_config_precision` applies it
-for `VLAConfig.matmul_precision = "tf32_rounded"`).
+loops, conditionals and checkpoints too, so a model needs no change
+(`vla.at_config_precision` applies it for `VLAConfig.matmul_precision = "tf32_rounded"`).
 """
 
 from __future__ import annotations
