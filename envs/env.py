@@ -184,7 +184,7 @@ class TabletopEnv:
 
     # ---- step -----------------------------------------------------------------------------
     def step(self, state: EnvState, action: jnp.ndarray) -> EnvState:
-        """Advances one control step (scene.N_SUBSTEPS physics steps). Actions are clipped
+        """Advances one control step (`config.physics.substeps` physics steps). Actions are clipped
         to [-1, 1]; a non-finite action fails the episode. The stages of `step_stages` in turn."""
         with physics.summation_order(self.config.physics):  # IK, physics, kinematics, Jacobians
             return self._finish(state, self._physics(state, self._controls(state, action)))
@@ -211,14 +211,15 @@ class TabletopEnv:
         return (staged(self._controls, "controls"), staged(physics_, "physics"), staged(self._finish, "finish"))
 
     def _controls(self, state: EnvState, action: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-        """(the servos' targets [N_SUBSTEPS, nu] of each substep, whether the action was invalid)."""
+        """(the servos' targets [substeps, nu] of each substep, whether the action was invalid)."""
         invalid = ~jnp.all(jnp.isfinite(action))
         action = jnp.where(invalid, 0.0, action)
         target = ik.action_to_ctrl(self.model, state.data, self.ids, action, self.config.control)
         # The arm's joint targets ramp linearly over the substeps (the servos then track a
         # smooth reference, as a real arm's interpolating controller does); fingers step.
         start = state.data.ctrl
-        frac = (jnp.arange(1, scene.N_SUBSTEPS + 1) / scene.N_SUBSTEPS)[:, None]
+        n = self.config.physics.substeps
+        frac = (jnp.arange(1, n + 1) / n)[:, None]
         return start + (target - start) * jnp.where(jnp.arange(target.shape[0]) < 7, frac, 1.0), invalid
 
     def _physics(self, state: EnvState, controls: tuple[jnp.ndarray, jnp.ndarray],

@@ -47,6 +47,12 @@ SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     integrator: str = "implicitfast"  # one of INTEGRATORS
+    # Physics steps per control step (scene.CONTROL_DT, 20 Hz, fixed): the timestep is
+    # CONTROL_DT / substeps, 5 ms at the default 10. Fewer are cheaper per control step (the
+    # env step's cost is nearly all substeps), but stiffer: a contact's solref time constant is
+    # raised to at least 2 timesteps by MuJoCo, and the arm's position servos (kp 4500, taken
+    # explicitly by implicitfast) need a short enough step to stay stable.
+    substeps: int = scene.N_SUBSTEPS
     force_limits: bool = True  # the servos' forcerange (arm 87 / 12 Nm, fingers 20 N); False: unlimited
     # implicitfast only: leave a clamped servo's velocity derivative out of the implicit step,
     # as MuJoCo C does (False: MJX's own rule, which keeps it).
@@ -85,6 +91,11 @@ class PhysicsConfig:
     # measurements.
     static_solver_loop: bool | None = None
 
+    @property
+    def timestep(self) -> float:
+        """One physics step (s): the control step split into `substeps`."""
+        return scene.CONTROL_DT / self.substeps
+
     def __post_init__(self):
         if self.integrator not in INTEGRATORS:
             raise ValueError(f"unknown integrator {self.integrator!r}; valid: {', '.join(INTEGRATORS)}")
@@ -96,7 +107,7 @@ class PhysicsConfig:
             raise ValueError(f"max_contacts must be 0 (every contact) or positive, got {self.max_contacts}")
         if self.max_geom_pairs < 0:
             raise ValueError(f"max_geom_pairs must be 0 (every pair) or positive, got {self.max_geom_pairs}")
-        for name in ("solver_iterations", "ls_iterations"):
+        for name in ("substeps", "solver_iterations", "ls_iterations"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
 
@@ -160,7 +171,7 @@ def mj_model(cfg: PhysicsConfig = PhysicsConfig()) -> mujoco.MjModel:
     """The scene compiled with these settings (cached per setting: the model is shared)."""
     model = scene.build_model(cfg.integrator, cfg.force_limits, cfg.max_contacts, cfg.max_geom_pairs)
     options = {"iterations": cfg.solver_iterations, "ls_iterations": cfg.ls_iterations,
-               "solver": SOLVERS[cfg.solver], "tolerance": cfg.tolerance}
+               "solver": SOLVERS[cfg.solver], "tolerance": cfg.tolerance, "timestep": cfg.timestep}
     if any(getattr(model.opt, k) != v for k, v in options.items()):
         model = copy.copy(model)  # the scene's own model stays as compiled
         for k, v in options.items():

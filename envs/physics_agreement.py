@@ -66,12 +66,12 @@ def reset_starts(env: TabletopEnv, task_ids, episodes) -> Starts:
     return Starts(*(np.asarray(x, np.float64) for x in (d.qpos, d.mocap_pos, d.ctrl)))
 
 
-def ramp(start: np.ndarray, targets: np.ndarray) -> np.ndarray:
-    """Per-physics-step controls [B, K * N_SUBSTEPS, nu] from control-step targets [B, K, nu]
+def ramp(start: np.ndarray, targets: np.ndarray, substeps: int = scene.N_SUBSTEPS) -> np.ndarray:
+    """Per-physics-step controls [B, K * substeps, nu] from control-step targets [B, K, nu]
     and the controls before the first [B, nu], as `env.step` applies them: the arm's targets
     ramp linearly over the substeps, the fingers' step."""
     prev = np.concatenate([start[:, None], targets[:, :-1]], 1)  # [B, K, nu]
-    frac = np.arange(1, scene.N_SUBSTEPS + 1) / scene.N_SUBSTEPS  # [S]
+    frac = np.arange(1, substeps + 1) / substeps  # [S]
     frac = np.where(np.arange(start.shape[-1]) < 7, frac[:, None], 1.0)  # [S, nu]
     ctrl = prev[:, :, None] + (targets - prev)[:, :, None] * frac  # [B, K, S, nu]
     return ctrl.reshape(start.shape[0], -1, start.shape[-1])
@@ -101,7 +101,7 @@ def jump_controls(starts: Starts, control_steps: int, seed: int = 0, jump: float
 
 def expert_controls(env: TabletopEnv, task_ids, episodes, control_steps: int) -> tuple[Starts, np.ndarray]:
     """The env's initial states and the scripted expert's controls [B, control_steps *
-    N_SUBSTEPS, nu]: its closed-loop episode in the MJX env (`env`'s own physics), the joint
+    substeps, nu]: its closed-loop episode in the MJX env (`env`'s own physics), the joint
     targets of each control step recorded and ramped as `env.step` ramps them."""
     starts = reset_starts(env, task_ids, episodes)
     task_ids = np.asarray(task_ids, np.int32)
@@ -121,7 +121,7 @@ def expert_controls(env: TabletopEnv, task_ids, episodes, control_steps: int) ->
         return jax.lax.scan(body, (state, es), jnp.arange(control_steps))[1]  # [K, B, nu]
 
     targets = np.asarray(run(keys, jnp.asarray(task_ids)), np.float64).transpose(1, 0, 2)
-    return starts, ramp(starts.ctrl, targets)
+    return starts, ramp(starts.ctrl, targets, env.config.physics.substeps)
 
 
 def _c_data(m: mujoco.MjModel, starts: Starts, i: int) -> mujoco.MjData:

@@ -4,7 +4,8 @@
 
 The baseline steps one environment at a time with `mujoco.mj_step` on the same MJCF, with
 the same control step (damped-least-squares IK in NumPy, ramped joint targets, 10 physics
-substeps), as LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows
+substeps, or as many as a --physics row's `substeps`, each with its own C loop), as LIBERO-style
+evaluation runs robosuite: one env, one Python loop. MJX rows
 are timed with and without the ray-cast camera, whose views are those the shipped target sees
 (`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded
 (warm-up call). The C loop runs --c_reps times; ratios take its fastest repetition. A camera
@@ -41,7 +42,7 @@ flags.DEFINE_integer("c_reps", 5, "Repetitions of the MuJoCo C loop (from the sa
 flags.DEFINE_enum("camera", "both", ["both", "on", "off"], "Time the env with the camera, without it, or both.")
 flags.DEFINE_string("physics", "", "MJX rows for each of these ';'-separated `envs.physics.PhysicsConfig` settings, "
                     "each 'field=value,...' ('' the defaults), e.g. ';max_contacts=32;max_contacts=32,ls_iterations=4'. "
-                    "The C loop keeps the default settings.")
+                    "The C loop keeps the default settings, except `substeps`: a row's ratio is to the C loop with its substeps.")
 flags.DEFINE_string("out", "", "Optional JSON output path.")
 
 
@@ -52,18 +53,19 @@ def _actions(t):
                       0 * t, 0 * t, 0.2 * jnp.sin(0.3 * t), jnp.sign(jnp.sin(0.05 * t))])
 
 
-def c_loop(n_steps: int, reps: int) -> list[float]:
+def c_loop(n_steps: int, reps: int, substeps: int = scene.N_SUBSTEPS) -> list[float]:
     """Control steps per second of one env in MuJoCo C, one Python loop, for each of `reps`
-    repetitions from the same state. One repetition can run at half the speed of the next on the
+    repetitions from the same state, with `substeps` physics steps per control step (the
+    default settings otherwise). One repetition can run at half the speed of the next on the
     same host, so a ratio takes the fastest: the C loop at its best."""
-    env = TabletopEnv(config=EnvConfig(render=False))
+    env = TabletopEnv(config=EnvConfig(render=False, physics=physics.PhysicsConfig(substeps=substeps)))
     m, ids, cfg = env.mj_model, env.ids, ControlConfig()
     s0 = jax.device_get(jax.jit(env.reset)(env.initial_state_keys(0, 0)[0], 0))
     acts = np.asarray(jax.vmap(_actions)(jnp.arange(n_steps)))
-    return [_c_rate(m, ids, cfg, s0, acts) for _ in range(reps)]
+    return [_c_rate(m, ids, cfg, s0, acts, substeps) for _ in range(reps)]
 
 
-def _c_rate(m, ids, cfg, s0, acts) -> float:
+def _c_rate(m, ids, cfg, s0, acts, substeps) -> float:
     d = mujoco.MjData(m)
     mujoco.mj_resetData(m, d)
     d.qpos[:], d.mocap_pos[:], d.ctrl[:] = s0.data.qpos, s0.data.mocap_pos, s0.data.ctrl
@@ -78,8 +80,8 @@ def _c_rate(m, ids, cfg, s0, acts) -> float:
         q = d.qpos[ids.arm_qpos]
         target = np.clip(np.clip(d.ctrl[:7] + dq, q - cfg.max_lead, q + cfg.max_lead), robot.ARM_LOWER, robot.ARM_UPPER)
         start = d.ctrl[:7].copy()
-        for i in range(scene.N_SUBSTEPS):
-            d.ctrl[:7] = start + (target - start) * (i + 1) / scene.N_SUBSTEPS
+        for i in range(substeps):
+            d.ctrl[:7] = start + (target - start) * (i + 1) / substeps
             d.ctrl[7:] = robot.FINGER_OPEN * (1 - a[6]) / 2
             mujoco.mj_step(m, d)
     return len(acts) / (time.perf_counter() - t0)
@@ -124,16 +126,24 @@ def main(argv):
     c_rates = c_loop(FLAGS.c_steps, FLAGS.c_reps)
     rows = [{"what": "mujoco_c_loop", "n_envs": 1, "ctrl_steps_per_s": max(c_rates), "repetitions": c_rates}]
     print(json.dumps(rows[-1]), flush=True)
+    c_best = {scene.N_SUBSTEPS: max(c_rates)}  # the C loop at each substeps a row runs
+    for k in sorted({cfg.substeps for cfg in configs} - set(c_best)):
+        reps = c_loop(FLAGS.c_steps, FLAGS.c_reps, k)
+        rows.append({"what": "mujoco_c_loop", "n_envs": 1, "substeps": k, "ctrl_steps_per_s": max(reps),
+                     "repetitions": reps})
+        c_best[k] = max(reps)
+        print(json.dumps(rows[-1]), flush=True)
     for cfg in configs:
         for n in sizes:
             for render in {"both": [False, True], "on": [True], "off": [False]}[FLAGS.camera]:
                 rate, comp = mjx_rate(n, EnvConfig(camera=cam, render=render, physics=cfg))
                 rows.append({"what": "mjx", "render": render, "n_envs": n, "physics": physics.describe(cfg),
-                             "ctrl_steps_per_s": rate, "compile_s": comp})
+                             "ctrl_steps_per_s": rate, "compile_s": comp,
+                             "x_c_loop": rate / c_best[cfg.substeps]})
                 print(json.dumps(rows[-1]), flush=True)
-    base = rows[0]["ctrl_steps_per_s"]
-    physics_only = {(r["n_envs"], r["physics"]): r["ctrl_steps_per_s"] for r in rows[1:] if not r["render"]}
-    for r in rows[1:]:  # the camera's share of a control step: 1 - (steps/s with it) / (steps/s without)
+    mjx_rows = [r for r in rows if r["what"] == "mjx"]
+    physics_only = {(r["n_envs"], r["physics"]): r["ctrl_steps_per_s"] for r in mjx_rows if not r["render"]}
+    for r in mjx_rows:  # the camera's share of a control step: 1 - (steps/s with it) / (steps/s without)
         if r["render"] and (r["n_envs"], r["physics"]) in physics_only:
             r["camera_share"] = 1.0 - r["ctrl_steps_per_s"] / physics_only[r["n_envs"], r["physics"]]
     print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}; camera: {', '.join(cam.views)} "
@@ -142,8 +152,9 @@ def main(argv):
     for r in rows:
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
         share = f"{r['camera_share']:.0%}" if "camera_share" in r else ""
-        print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{r['ctrl_steps_per_s'] / base:>10.2f}{share:>8}  "
-              f"{r.get('physics') or ('defaults' if r['what'] == 'mjx' else '')}")
+        ratio = f"{r['x_c_loop']:.2f}" if "x_c_loop" in r else ""
+        setting = r.get("physics") or "defaults" if r["what"] == "mjx" else (f"substeps={r['substeps']}" if "substeps" in r else "")
+        print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{ratio:>10}{share:>8}  {setting}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
                                                  "camera": dataclasses.asdict(cam), "rows": rows})

@@ -3,7 +3,7 @@ order (`fixed_order_sums`): the same sums as `jax.ops.segment_sum`, no scatter-a
 repeated indices left in the env's traced step (on a GPU such a scatter-add runs with atomics,
 in an order that changes from run to run), and on CPU the same physics up to float rounding.
 The static solver loop: no while loop left, the same physics. The contact caps, the solver's
-iteration caps and `--physics`' text form."""
+iteration caps, the substeps per control step and `--physics`' text form."""
 
 import collections
 
@@ -143,7 +143,8 @@ def test_physics_settings_parse_from_text_and_back():
                          ("force_limits=yes", "takes true, 1, false, 0"),
                          ("static_solver_loop=auto", "takes true, 1, false, 0, none"),
                          ("integrator=leapfrog", "unknown integrator"),
-                         ("solver=pgs", "valid: newton, cg"), ("tolerance=-1", "tolerance must be >= 0")]:
+                         ("solver=pgs", "valid: newton, cg"), ("tolerance=-1", "tolerance must be >= 0"),
+                         ("substeps=0", "substeps must be at least 1")]:
         with pytest.raises(ValueError, match=message):
             physics.parse(bad)
 
@@ -160,6 +161,22 @@ def test_solver_settings_set_the_models_options_and_leave_the_scene_as_compiled(
     o = scene.build_model().opt
     assert (o.iterations, o.ls_iterations, o.solver, o.tolerance) == (
         scene.SOLVER_ITERATIONS, scene.LS_ITERATIONS, mujoco.mjtSolver.mjSOL_NEWTON, scene.SOLVER_TOLERANCE)
+
+
+def test_substeps_split_the_control_step_and_ramp_to_the_same_targets(envs_and_state):
+    from envs import scene  # noqa: PLC0415
+
+    env, _, state = envs_and_state
+    coarse = TabletopEnv(env.tasks, EnvConfig(render=False, physics=physics.PhysicsConfig(substeps=4)))
+    assert env.mj_model.opt.timestep == scene.TIMESTEP and coarse.mj_model.opt.timestep == scene.CONTROL_DT / 4
+    action = jnp.asarray([0.5, -0.4, 0.3, 0.2, -0.1, 0.3, 1.0], jnp.float32)
+    ramp, _ = coarse.step_stages[0](state, action)
+    assert ramp.shape == (4, env.mj_model.nu)
+    np.testing.assert_allclose(ramp[1, :7], (state.data.ctrl[:7] + ramp[-1, :7]) / 2, rtol=0, atol=1e-6)  # linear
+    fine_next, coarse_next = jax.jit(env.step)(state, action), jax.jit(coarse.step)(state, action)
+    for after in (fine_next, coarse_next):  # one control step of simulated time either way
+        np.testing.assert_allclose(after.data.time - state.data.time, scene.CONTROL_DT, rtol=1e-5)
+    np.testing.assert_array_equal(coarse_next.data.ctrl, fine_next.data.ctrl)  # the same IK target, reached by both ramps
 
 
 def test_broad_phase_ranks_order_pairs_by_bounding_sphere_gap_per_env():
