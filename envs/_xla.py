@@ -92,7 +92,10 @@ def with_autotune_files(load: str, dump: str, flags: str = "") -> str:
 
 
 def _probe(flags: str) -> bool:
-    env = dict(os.environ, XLA_FLAGS=flags)
+    """Whether a JAX process starts with XLA_FLAGS=flags. XLA reads XLA_FLAGS as its first
+    backend starts and aborts on a flag it does not know, so the CPU backend alone answers:
+    the child never starts a GPU's (seconds on a fresh machine, for flags XLA parses alike)."""
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     try:
         r = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True, timeout=300)
     except (OSError, subprocess.TimeoutExpired):
@@ -103,8 +106,8 @@ def _probe(flags: str) -> bool:
 def supported(flags: dict[str, str]) -> dict[str, bool]:
     """Which of `flags` (name -> value) the installed XLA accepts, each answer cached per
     installed jax/jaxlib/plugin versions and JAX_PLATFORMS. The flags not cached yet are probed
-    together in one child process (a probe starts JAX's backends: seconds on a GPU machine, a
-    fresh one's first run), and one by one only where that fails."""
+    together in one child process (a probe starts JAX's CPU backend: a second or more on a
+    fresh machine's first run), and one by one only where that fails."""
     keys = {name: f"--{name}={value}|{_fingerprint()}" for name, value in flags.items()}
     try:
         cache = json.loads(_CACHE.read_text())

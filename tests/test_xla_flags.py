@@ -101,3 +101,9 @@ def test_flags_are_probed_together_once_and_one_by_one_only_where_that_fails(tmp
     assert probes[1:] == ["--b=0 --d=3", "--b=0", "--d=3"]  # --a cached; together failed: one by one
     assert _xla.supported({"d": "3", "b": "0", "a": "1"}) == {"d": True, "b": False, "a": True}
     assert len(probes) == 4  # every answer cached
+
+
+def test_a_probe_starts_only_the_cpu_backend_and_refuses_an_unknown_flag(monkeypatch):
+    monkeypatch.setenv("JAX_PLATFORMS", "cuda")  # without a GPU, a child that kept this would fail to start
+    assert _xla._probe("")
+    assert not _xla._probe("--xla_no_such_flag_heisd=1")
