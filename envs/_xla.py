@@ -17,9 +17,9 @@ nothing there and autotunes as usual. An explicit setting (`--xla_gpu_load_autot
 turns it off) is respected.
 Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag they do not
 know, although its name still appears in their binaries. So whether each flag is accepted
-is probed once, in a child process that starts JAX's backends with it (the flags together,
-one by one only where that fails: each probe costs a backend start), and the answer is
-cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS
+is probed once, in one child process that starts JAX's CPU backend with the flags together
+(XLA names every flag it does not know; one by one only where a child fails without naming
+them), and the answer is cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS
 are kept; an explicit setting of either flag is respected.
 """
 
@@ -29,6 +29,7 @@ import importlib.metadata
 import json
 import os
 from pathlib import Path
+import re
 import subprocess
 import sys
 
@@ -91,34 +92,43 @@ def with_autotune_files(load: str, dump: str, flags: str = "") -> str:
     return " ".join(kept + [f"--{AUTOTUNE_FLAG}={load}", f"--xla_gpu_dump_autotune_results_to={dump}"])
 
 
-def _probe(flags: str) -> bool:
-    """Whether a JAX process starts with XLA_FLAGS=flags. XLA reads XLA_FLAGS as its first
-    backend starts and aborts on a flag it does not know, so the CPU backend alone answers:
-    the child never starts a GPU's (seconds on a fresh machine, for flags XLA parses alike)."""
+def _probe(flags: str) -> set[str] | None:
+    """The flags of `flags` XLA does not know, as given: empty when a JAX process starts with
+    XLA_FLAGS=flags; None when it fails without naming only flags of `flags` (say, a value XLA
+    cannot read). XLA reads XLA_FLAGS as its first backend starts, names every unknown flag in
+    one message and aborts, so one child answers for all, and the CPU backend alone answers:
+    the child never starts a GPU's (seconds on a fresh machine)."""
     env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
     try:
-        r = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True, timeout=300)
+        r = subprocess.run([sys.executable, "-c", "import jax; jax.devices()"], env=env, capture_output=True,
+                           text=True, timeout=300)
     except (OSError, subprocess.TimeoutExpired):
-        return False
-    return r.returncode == 0
+        return None
+    if r.returncode == 0:
+        return set()
+    named = re.search(r"Unknown flags? in XLA_FLAGS: (.*)", r.stderr)
+    unknown = set(named.group(1).split()) if named else set()
+    return unknown if unknown and unknown <= set(flags.split()) else None
 
 
 def supported(flags: dict[str, str]) -> dict[str, bool]:
     """Which of `flags` (name -> value) the installed XLA accepts, each answer cached per
     installed jax/jaxlib/plugin versions and JAX_PLATFORMS. The flags not cached yet are probed
     together in one child process (a probe starts JAX's CPU backend: a second or more on a
-    fresh machine's first run), and one by one only where that fails."""
+    fresh machine's first run), and one by one only where that child fails without naming
+    which flags XLA does not know."""
     keys = {name: f"--{name}={value}|{_fingerprint()}" for name, value in flags.items()}
     try:
         cache = json.loads(_CACHE.read_text())
     except (OSError, ValueError):
         cache = {}
-    todo = [name for name in flags if keys[name] not in cache]
+    todo = {name: f"--{name}={flags[name]}" for name in flags if keys[name] not in cache}
     if todo:
-        if len(todo) > 1 and _probe(" ".join(f"--{name}={flags[name]}" for name in todo)):
-            cache.update({keys[name]: True for name in todo})
+        unknown = _probe(" ".join(todo.values()))
+        if unknown is None and len(todo) > 1:
+            cache.update({keys[name]: _probe(arg) == set() for name, arg in todo.items()})
         else:
-            cache.update({keys[name]: _probe(f"--{name}={flags[name]}") for name in todo})
+            cache.update({keys[name]: unknown is not None and arg not in unknown for name, arg in todo.items()})
         try:
             _CACHE.parent.mkdir(parents=True, exist_ok=True)
             tmp = _CACHE.with_suffix(f".tmp{os.getpid()}")

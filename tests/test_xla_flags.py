@@ -91,19 +91,24 @@ def test_flags_are_probed_together_once_and_one_by_one_only_where_that_fails(tmp
     monkeypatch.setattr(_xla, "_CACHE", tmp_path / "xla_flag.json")
     probes = []
 
-    def probe(flags):  # this XLA knows every flag but --b
+    def probe(flags):  # this XLA knows every flag but --b, and cannot read --e's value
         probes.append(flags)
-        return "--b=" not in flags
+        if "--e=" in flags:
+            return None  # failed without naming an unknown flag
+        return {f for f in flags.split() if f.startswith("--b=")}
     monkeypatch.setattr(_xla, "_probe", probe)
     assert _xla.supported({"a": "1", "c": "2"}) == {"a": True, "c": True}
     assert probes == ["--a=1 --c=2"]  # one child process for both
     assert _xla.supported({"a": "1", "b": "0", "d": "3"}) == {"a": True, "b": False, "d": True}
-    assert probes[1:] == ["--b=0 --d=3", "--b=0", "--d=3"]  # --a cached; together failed: one by one
-    assert _xla.supported({"d": "3", "b": "0", "a": "1"}) == {"d": True, "b": False, "a": True}
-    assert len(probes) == 4  # every answer cached
+    assert probes[1:] == ["--b=0 --d=3"]  # --a cached; the child named --b: still one child
+    assert _xla.supported({"d": "3", "e": "x", "f": "4"}) == {"d": True, "e": False, "f": True}
+    assert probes[2:] == ["--e=x --f=4", "--e=x", "--f=4"]  # nothing named: one by one
+    assert _xla.supported({"f": "4", "b": "0", "a": "1", "e": "x"}) == {"f": True, "b": False, "a": True, "e": False}
+    assert len(probes) == 5  # every answer cached
 
 
-def test_a_probe_starts_only_the_cpu_backend_and_refuses_an_unknown_flag(monkeypatch):
+def test_a_probe_starts_only_the_cpu_backend_and_names_the_unknown_flags(monkeypatch):
     monkeypatch.setenv("JAX_PLATFORMS", "cuda")  # without a GPU, a child that kept this would fail to start
-    assert _xla._probe("")
-    assert not _xla._probe("--xla_no_such_flag_heisd=1")
+    assert _xla._probe("") == set()
+    assert _xla._probe("--xla_no_such_flag_heisd=1 --xla_nor_this_one=2") == {"--xla_no_such_flag_heisd=1",
+                                                                             "--xla_nor_this_one=2"}
