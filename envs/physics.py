@@ -47,12 +47,6 @@ SOLVERS = {"newton": mujoco.mjtSolver.mjSOL_NEWTON, "cg": mujoco.mjtSolver.mjSOL
 @dataclasses.dataclass(frozen=True)
 class PhysicsConfig:
     integrator: str = "implicitfast"  # one of INTEGRATORS
-    # Physics steps per control step (scene.CONTROL_DT, 20 Hz, fixed): the timestep is
-    # CONTROL_DT / substeps, 5 ms at the default 10. Fewer are cheaper per control step (the
-    # env step's cost is nearly all substeps), but stiffer: a contact's solref time constant is
-    # raised to at least 2 timesteps by MuJoCo, and the arm's position servos (kp 4500, taken
-    # explicitly by implicitfast) need a short enough step to stay stable.
-    substeps: int = scene.N_SUBSTEPS
     force_limits: bool = True  # the servos' forcerange (arm 87 / 12 Nm, fingers 20 N); False: unlimited
     # implicitfast only: leave a clamped servo's velocity derivative out of the implicit step,
     # as MuJoCo C does (False: MJX's own rule, which keeps it).
@@ -90,6 +84,13 @@ class PhysicsConfig:
     # the physics instead of waiting for it), else the while loop. docs/benchmark.md has the
     # measurements.
     static_solver_loop: bool | None = None
+    # Physics steps per control step (scene.CONTROL_DT, 20 Hz, fixed): the timestep is
+    # CONTROL_DT / substeps, 5 ms at the default 10. Fewer are cheaper per control step (the
+    # env step's cost is nearly all substeps), but coarser: MuJoCo raises a contact's solref
+    # time constant to at least 2 timesteps, and the arm's position servos (kp 4500, taken
+    # explicitly by implicitfast) need a short enough step to stay stable (docs/benchmark.md:
+    # 8 holds the expert's and AR's success, 6 does not).
+    substeps: int = scene.N_SUBSTEPS
 
     @property
     def timestep(self) -> float:
