@@ -19,8 +19,8 @@ Some XLA builds (seen: jaxlib 0.11.2 with the CUDA 13 plugin) abort on a flag th
 know, although its name still appears in their binaries. So whether each flag is accepted
 is probed once, in one child process that starts JAX's CPU backend with the flags together
 (XLA names every flag it does not know; one by one only where a child fails without naming
-them), and the answer is cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS. A user's own XLA_FLAGS
-are kept; an explicit setting of either flag is respected.
+them), and the answer is cached per installed jax/jaxlib/plugin versions and JAX_PLATFORMS.
+A user's own XLA_FLAGS are kept; an explicit setting of either flag is respected.
 """
 
 from __future__ import annotations

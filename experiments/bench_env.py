@@ -4,9 +4,9 @@
 
 The baseline steps one environment at a time with `mujoco.mj_step` on the same MJCF, with
 the same control step (damped-least-squares IK in NumPy, ramped joint targets, 10 physics
-substeps, or as many as a --physics row's `substeps`, each with its own C loop), as LIBERO-style
-evaluation runs robosuite: one env, one Python loop. MJX rows
-are timed with and without the ray-cast camera, whose views are those the shipped target sees
+substeps, or as many as a --physics row's `substeps`, each with its own C loop), as
+LIBERO-style evaluation runs robosuite: one env, one Python loop. MJX rows are timed with
+and without the ray-cast camera, whose views are those the shipped target sees
 (`methods.env_config("ar")`: the agent view and the wrist view). Compile time is excluded
 (warm-up call). The C loop runs --c_reps times; ratios take its fastest repetition. A camera
 row records the camera's share of the control step: 1 - its steps/s / the physics-only row's.
@@ -153,7 +153,10 @@ def main(argv):
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
         share = f"{r['camera_share']:.0%}" if "camera_share" in r else ""
         ratio = f"{r['x_c_loop']:.2f}" if "x_c_loop" in r else ""
-        setting = r.get("physics") or "defaults" if r["what"] == "mjx" else (f"substeps={r['substeps']}" if "substeps" in r else "")
+        if r["what"] == "mjx":
+            setting = r["physics"] or "defaults"
+        else:
+            setting = f"substeps={r['substeps']}" if "substeps" in r else ""
         print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{ratio:>10}{share:>8}  {setting}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
