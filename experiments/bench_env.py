@@ -123,15 +123,12 @@ def main(argv):
         raise app.UsageError(f"--physics: {e}") from e
     device = str(jax.devices()[0].device_kind)
     cam = methods.env_config("ar").camera
-    c_rates = c_loop(FLAGS.c_steps, FLAGS.c_reps)
-    rows = [{"what": "mujoco_c_loop", "n_envs": 1, "ctrl_steps_per_s": max(c_rates), "repetitions": c_rates}]
-    print(json.dumps(rows[-1]), flush=True)
-    c_best = {scene.N_SUBSTEPS: max(c_rates)}  # the C loop at each substeps a row runs
-    for k in sorted({cfg.substeps for cfg in configs} - set(c_best)):
+    rows, c_best = [], {}  # the C loop at the default substeps, then at each other one a row runs
+    for k in dict.fromkeys([scene.N_SUBSTEPS, *sorted(cfg.substeps for cfg in configs)]):
         reps = c_loop(FLAGS.c_steps, FLAGS.c_reps, k)
-        rows.append({"what": "mujoco_c_loop", "n_envs": 1, "substeps": k, "ctrl_steps_per_s": max(reps),
-                     "repetitions": reps})
         c_best[k] = max(reps)
+        rows.append({"what": "mujoco_c_loop", "n_envs": 1, "substeps": k, "ctrl_steps_per_s": c_best[k],
+                     "repetitions": reps})
         print(json.dumps(rows[-1]), flush=True)
     for cfg in configs:
         for n in sizes:
@@ -147,7 +144,8 @@ def main(argv):
         if r["render"] and (r["n_envs"], r["physics"]) in physics_only:
             r["camera_share"] = 1.0 - r["ctrl_steps_per_s"] / physics_only[r["n_envs"], r["physics"]]
     print(f"\ndevice: {device}, jax {jax.__version__}, mujoco {mujoco.__version__}; camera: {', '.join(cam.views)} "
-          f"({cam.height}x{cam.width}); C loop repetitions: {', '.join(f'{r:.0f}' for r in c_rates)} control steps/s")
+          f"({cam.height}x{cam.width}); C loop repetitions: {', '.join(f'{r:.0f}' for r in rows[0]['repetitions'])} "
+          "control steps/s")
     print(f"{'env':<28}{'envs':>6}{'ctrl steps/s':>15}{'x C loop':>10}{'camera':>8}  physics")
     for r in rows:
         name = r["what"] if r["what"] != "mjx" else f"mjx {'with camera' if r['render'] else 'physics only'}"
@@ -156,7 +154,7 @@ def main(argv):
         if r["what"] == "mjx":
             setting = r["physics"] or "defaults"
         else:
-            setting = f"substeps={r['substeps']}" if "substeps" in r else ""
+            setting = f"substeps={r['substeps']}" if r["substeps"] != scene.N_SUBSTEPS else ""
         print(f"{name:<28}{r['n_envs']:>6}{r['ctrl_steps_per_s']:>15.0f}{ratio:>10}{share:>8}  {setting}")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "device": device,
