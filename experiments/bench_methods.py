@@ -45,7 +45,7 @@ from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.observation import Observation
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, methods, results_io, retrieval, vla, vla_policy
+from heisd_jax import checkpoint, methods, results_io, retrieval, scale, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -61,6 +61,11 @@ flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollout
 flags.DEFINE_integer("lane_envs", 4, "Recorded envs each replayed row plays one after another (their running steps).")
 flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
 cli.define_paths("checkpoint", "drafter", "datastore")
+flags.DEFINE_enum("target_scale", None, list(scale.SCALE_NAMES), "Every timed method (and the ceiling) with the "
+                  "target expanded to this architecture (docs/scale.md), unless its --methods settings name one; "
+                  "the recording runs the shipped target, whose tokens are the same.")
+flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "Every timed method (and the ceiling) in this dtype, unless its "
+                  "--methods settings name one.")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_string("out", "", "JSON output path.")
 flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
@@ -108,10 +113,16 @@ def record(env: TabletopEnv, n_envs: int, n_steps: int):
     return states, traj["action"], traj["done"]
 
 
+def common_settings() -> dict:
+    """The settings --target_scale and --dtype give every timed method."""
+    return {k: FLAGS[k].value for k in ("target_scale", "dtype") if FLAGS[k].value is not None}
+
+
 def prefill_policy(env: TabletopEnv):
     """The target's prefill alone (its greedy first token repeated): the floor of any method
     that prefills every action."""
     params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
+    cfg, params = methods.in_numerics(cfg, methods.ARSettings(**common_settings()), params)
 
     def decode(params, cfg, obs):
         logits, _, _ = vla.prefill(params, cfg, obs)
@@ -184,7 +195,8 @@ def main(argv):
         raise app.UsageError(f"--lane_envs must be >= 1, got {FLAGS.lane_envs}")
     if sizes[0] < 1 or sizes[-1] > FLAGS.record_envs:
         raise app.UsageError(f"batch sizes must be in 1..--record_envs={FLAGS.record_envs}, got {sizes}")
-    method_list = [("ar", {})] + [m for m in method_list if m != ("ar", {})]
+    common = common_settings()
+    method_list = [(n, {**common, **s}) for n, s in [("ar", {})] + [m for m in method_list if m != ("ar", {})]]
     env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
     t0 = time.perf_counter()
     states, ar_actions, done = record(env, FLAGS.record_envs, FLAGS.steps)
@@ -228,7 +240,7 @@ def main(argv):
             same, dist = np.all(bins == ar_bins, -1), np.abs(bins - ar_bins).mean(-1)
             n_act = float(t_idx.size)
             ms = float(np.median(rep_ms))
-            if name == "ar" and not settings:
+            if base is None:  # AR, timed first
                 base, base_reps = ms, rep_ms
             ratios = base_reps / rep_ms
             label = name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")

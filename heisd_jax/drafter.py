@@ -38,7 +38,7 @@ class Drafter(nn.Module):
         x = nn.Dense(self.cfg.d_model, use_bias=True, dtype=self.cfg.dtype, name="fc")(
             jnp.concatenate([emb, feat.astype(emb.dtype)], -1))
         x, (k, v) = vla.DecoderBlock(self.cfg, name="block")(x, layer_k, layer_v, positions, cache_mask, block_mask)
-        return nn.RMSNorm(dtype=self.cfg.dtype, name="norm")(x), (k, v)
+        return nn.RMSNorm(epsilon=self.cfg.norm_eps, dtype=self.cfg.dtype, name="norm")(x), (k, v)
 
 
 def init_params(cfg: vla.VLAConfig, key: jax.Array) -> dict:

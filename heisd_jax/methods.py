@@ -24,8 +24,8 @@ import numpy as np
 from envs import camera, expert, language, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from envs.rollout import Policy
-from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, spec_decode, vla,
-                       vla_policy)
+from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, scale, spec_decode,
+                       vla, vla_policy)
 
 DTYPES = ("float32", "bfloat16")
 BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary
@@ -51,10 +51,17 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | No
     return (cfg, *(jax.tree.map(cast, p) for p in params))
 
 
-def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", *params):
-    """`in_dtype` at a method's settings (their dtype and matmul precision), and the
-    inference passes unrolled or not."""
-    cfg, *params = in_dtype(cfg, settings.dtype, *params, matmul_precision=settings.matmul_precision)
+def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", target, drafter=None):
+    """The target (and its drafter) at a method's settings: expanded to `target_scale`
+    (`heisd_jax.scale`), in their dtype and matmul precision, the inference passes unrolled
+    or not. Returns (cfg, target params[, drafter params])."""
+    big = scale.scaled_config(cfg, settings.target_scale)  # refuses a scale smaller than the target first
+    if big is not cfg:
+        dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, settings.target_scale, settings.dtype)
+        target, cfg = scale.expand_target(target, cfg, settings.target_scale, settings.dtype)
+        drafter = dparams
+    cfg, *params = in_dtype(cfg, settings.dtype, *(p for p in (target, drafter) if p is not None),
+                            matmul_precision=settings.matmul_precision)
     return (dataclasses.replace(cfg, unroll=settings.unroll), *params)
 
 
@@ -83,6 +90,9 @@ class ARSettings:
                                      "then TF32 tensor cores (GPUs) or float32, whose products are then exact, so "
                                      "every kernel forms the same ones.",
                                      vla.MATMUL_PRECISIONS)
+    target_scale: str = _setting(scale.SHIPPED, "The target (and drafter) expanded, function-preserving, to a "
+                                 "larger architecture (heisd_jax.scale, docs/scale.md): the shipped target's tokens "
+                                 "at a larger model's pass costs.", scale.SCALE_NAMES)
     unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
                             "unrolled: one straight-line program per pass instead of a loop the host drives layer by "
                             "layer on a GPU; compiles several times longer, runs slower on a CPU, and on a GPU is "

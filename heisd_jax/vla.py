@@ -65,6 +65,15 @@ class VLAConfig:
     matmul_precision: str = "float32"
     # Inference passes with the decoder layers, and AR's token loop, unrolled (see `VLA`).
     unroll: bool = False
+    # Larger architectures (`heisd_jax.scale` expands a trained target into them); 0 means
+    # "as the fields above", which is how every trained checkpoint is built.
+    vocab: int = 0  # 0: text_vocab + 256; more: unused ids after the action ids
+    image_tokens: int = 0  # 0: n_patches; more: pad tokens before the patches, which no token attends to
+    vision_width: int = 0  # 0: d_model; else the vision tower's width, projected linearly to d_model
+    vision_heads: int = 0  # 0: n_heads
+    vision_mlp: int = 0  # 0: mlp_dim
+    norm_eps: float = 1e-6  # RMSNorm epsilon of the decoder (and drafter)
+    vision_norm_eps: float = 1e-6  # RMSNorm epsilon of the vision tower
 
     @property
     def n_patches(self) -> int:
@@ -76,12 +85,17 @@ class VLAConfig:
         return (self.image_size, self.n_views * self.image_size, 3)
 
     @property
+    def image_pad(self) -> int:
+        """Pad tokens ahead of the image patches (a scaled-up prompt's length, not its content)."""
+        return self.image_tokens - self.n_patches
+
+    @property
     def prompt_len(self) -> int:
-        return self.n_patches + self.text_len + 1
+        return self.image_tokens + self.text_len + 1
 
     @property
     def vocab_size(self) -> int:
-        return self.text_vocab + N_BINS
+        return self.vocab
 
     @property
     def first_action_id(self) -> int:
@@ -96,6 +110,17 @@ class VLAConfig:
             raise ValueError(f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}")
         if self.d_model % self.n_heads or (self.d_model // self.n_heads) % 2:
             raise ValueError(f"d_model {self.d_model} must split into {self.n_heads} heads of even size")
+        for name, default in (("vocab", self.text_vocab + N_BINS), ("image_tokens", self.n_patches),
+                              ("vision_width", self.d_model), ("vision_heads", self.n_heads),
+                              ("vision_mlp", self.mlp_dim)):
+            if getattr(self, name) == 0:
+                object.__setattr__(self, name, default)
+        if self.vocab < self.text_vocab + N_BINS:
+            raise ValueError(f"vocab {self.vocab} < text_vocab {self.text_vocab} + {N_BINS} action ids")
+        if self.image_tokens < self.n_patches:
+            raise ValueError(f"image_tokens {self.image_tokens} < the image's {self.n_patches} patches")
+        if self.vision_width % self.vision_heads:
+            raise ValueError(f"vision_width {self.vision_width} must split into {self.vision_heads} heads")
         if self.cache_slots == 0:
             object.__setattr__(self, "cache_slots", self.prompt_len + DRAFT_SLOTS)
         if self.cache_slots < self.prompt_len + ACTION_DIM:
@@ -248,7 +273,9 @@ class DecoderBlock(nn.Module):
         cfg = self.cfg
         b, t, d = x.shape
         hd = d // cfg.n_heads
-        h = nn.RMSNorm(dtype=cfg.dtype, name="attn_norm")(x)
+        if cfg.image_pad:  # rotary positions count real tokens only: the pads sit at slots 0..pad-1
+            positions = jnp.maximum(positions - cfg.image_pad, 0)
+        h = nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype, name="attn_norm")(x)
         qkv = nn.Dense(3 * d, use_bias=False, dtype=cfg.dtype, name="qkv")(h).reshape(b, t, 3, cfg.n_heads, hd)
         q, k, v = rope(qkv[:, :, 0], positions, cfg.rope_base), rope(qkv[:, :, 1], positions, cfg.rope_base), qkv[:, :, 2]
         k, v = k.astype(cfg.dtype), v.astype(cfg.dtype)
@@ -265,30 +292,41 @@ class DecoderBlock(nn.Module):
             out = (jnp.einsum("bhts,bshd->bthd", attn[..., :-t], layer_v)
                    + jnp.einsum("bhts,bshd->bthd", attn[..., -t:], v))
         x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out.reshape(b, t, d))
-        x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(dtype=cfg.dtype, name="mlp_norm")(x))
+        x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype,
+                                                                          name="mlp_norm")(x))
         return x, (k, v)
 
 
 class VisionEncoder(nn.Module):
-    """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, n_patches, D]. Tiled
-    views are patchified alike; the learned position embedding tells them apart."""
+    """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, image_tokens, D]. Tiled
+    views are patchified alike; the learned position embedding tells them apart. A scaled-up
+    tower (`cfg.image_pad`) puts pad tokens ahead of the patches, which no token attends to,
+    and a tower wider than the decoder ends in a linear projection to its width."""
 
     cfg: VLAConfig
 
     @nn.compact
     def __call__(self, image):
         cfg = self.cfg
+        w, eps = cfg.vision_width, cfg.vision_norm_eps
         x = image.astype(jnp.float32) / 127.5 - 1.0
-        x = nn.Conv(cfg.d_model, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype,
-                    name="patchify")(x)
+        x = nn.Conv(w, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype, name="patchify")(x)
         b = x.shape[0]
-        x = x.reshape(b, -1, cfg.d_model)
-        x = x + self.param("pos", nn.initializers.normal(0.02), (1, cfg.n_patches, cfg.d_model)).astype(x.dtype)
+        x = x.reshape(b, -1, w)
+        mask = None
+        if cfg.image_pad:
+            x = jnp.concatenate([jnp.zeros((b, cfg.image_pad, w), x.dtype), x], 1)
+            mask = (jnp.arange(cfg.image_tokens) >= cfg.image_pad)[None, None, None, :]  # keys: the patches only
+        x = x + self.param("pos", nn.initializers.normal(0.02), (1, cfg.image_tokens, w)).astype(x.dtype)
         for i in range(cfg.vision_layers):
-            h = nn.RMSNorm(dtype=cfg.dtype, name=f"norm{i}")(x)
-            x = x + nn.MultiHeadDotProductAttention(cfg.n_heads, dtype=cfg.dtype, name=f"attn{i}")(h, h)
-            x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name=f"mlp{i}")(nn.RMSNorm(dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
-        return nn.RMSNorm(dtype=cfg.dtype, name="out_norm")(x)
+            h = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"norm{i}")(x)
+            x = x + nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=cfg.dtype, name=f"attn{i}")(h, h, mask=mask)
+            x = x + SwiGLU(cfg.vision_mlp, cfg.dtype, name=f"mlp{i}")(
+                nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
+        x = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name="out_norm")(x)
+        if w != cfg.d_model:
+            x = nn.Dense(cfg.d_model, use_bias=False, dtype=cfg.dtype, name="proj")(x)
+        return x
 
 
 class VLA(nn.Module):
@@ -313,7 +351,7 @@ class VLA(nn.Module):
             in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
             unroll=cfg.n_layers if self.training or cfg.unroll else 1,
         )(cfg)
-        self.final_norm = nn.RMSNorm(dtype=cfg.dtype)
+        self.final_norm = nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype)
         self.head = nn.Dense(cfg.vocab_size, use_bias=False, dtype=cfg.dtype)
 
     def prompt_embeddings(self, obs: Observation) -> jnp.ndarray:
@@ -326,13 +364,15 @@ class VLA(nn.Module):
     def embed_tokens(self, tokens):
         return self.embed(tokens)
 
-    def run(self, x, cache: KVCache | None, positions, cache_mask, block_mask):
+    def run(self, x, cache: KVCache | None, positions, cache_mask, block_mask, logits_from: int = 0):
         """Decoder over embeddings x [B, T, D] against a read-only cache (None: none);
-        returns hidden [B, T, D], logits [B, T, V] and the tokens' keys/values [L, B, T, H, Dh]."""
+        returns hidden [B, T, D], logits [B, T - logits_from, V] (of the tokens from
+        `logits_from` on: a prefill needs only its last prompt token's) and the tokens'
+        keys/values [L, B, T, H, Dh]."""
         ck, cv = (None, None) if cache is None else (cache.k, cache.v)
         x, (k, v) = self.blocks(x, ck, cv, positions, cache_mask, block_mask)
         hidden = self.final_norm(x)
-        return hidden, self.head(hidden).astype(jnp.float32), (k, v)
+        return hidden, self.head(hidden[:, logits_from:]).astype(jnp.float32), (k, v)
 
     def __call__(self, obs: Observation, tokens):
         """Initialisation / teacher forcing entry: prompt + tokens [B, T] -> logits of all."""
@@ -358,7 +398,8 @@ def prompt_key_mask(cfg: VLAConfig, instruction: jnp.ndarray) -> jnp.ndarray:
     """[B, prompt_len] bool: prompt slots that hold real tokens (instruction padding is off)."""
     b = instruction.shape[0]
     text_ok = instruction != PAD_ID
-    return jnp.concatenate([jnp.ones((b, cfg.n_patches), bool), text_ok, jnp.ones((b, 1), bool)], 1)
+    return jnp.concatenate([jnp.zeros((b, cfg.image_pad), bool), jnp.ones((b, cfg.n_patches), bool), text_ok,
+                            jnp.ones((b, 1), bool)], 1)
 
 
 def init_params(cfg: VLAConfig, key: jax.Array) -> dict:
@@ -386,7 +427,7 @@ def prefill_features(params, cfg: VLAConfig, obs: Observation):
     hidden states of every prompt position [B, P, D] and the prompt's input embeddings
     [B, P, D]. Returns (last logits [B, V], hidden [B, P, D], embeddings, cache)."""
     logits, hidden, x, cache, _ = _prefill(params, cfg, obs, None)
-    return logits[:, cfg.prompt_len - 1], hidden, x, cache
+    return logits[:, 0], hidden, x, cache
 
 
 def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, depth: jnp.ndarray,
@@ -400,7 +441,7 @@ def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.nda
     ...)` keeps an accepted path exactly as after `decode`."""
     logits, hidden, x, cache, blk = _prefill(params, cfg, obs, (tokens, depth, intra))
     p = cfg.prompt_len
-    return logits[:, p - 1], hidden[:, :p], x, logits[:, p:], hidden[:, p:], cache, blk
+    return logits[:, 0], hidden[:, :p], x, logits[:, 1:], hidden[:, p:], cache, blk
 
 
 @at_config_precision
@@ -421,8 +462,9 @@ def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     def fn(m):
         x = m.prompt_embeddings(obs)
         full = x if block is None else jnp.concatenate([x, m.embed_tokens(block[0]).astype(x.dtype)], 1)
-        return x, m.run(full, None, positions, None, mask)
+        return x, m.run(full, None, positions, None, mask, logits_from=p - 1)
 
+    # logits [B, 1 + T, V]: the last prompt token's, then the block's
     x, (hidden, logits, (k, v)) = nn.apply(fn, model)({"params": params})
     pad = ((0, 0), (0, 0), (0, cfg.cache_slots - p), (0, 0), (0, 0))
     cache = KVCache(k=jnp.pad(k[:, :, :p], pad), v=jnp.pad(v[:, :, :p], pad), key_mask=_pad_to(key_ok, cfg.cache_slots),
@@ -486,12 +528,13 @@ def embed_tokens(params, tokens: jnp.ndarray) -> jnp.ndarray:
 @at_config_precision
 def action_head(params, cfg: VLAConfig, hidden: jnp.ndarray) -> jnp.ndarray:
     """The target's output head restricted to the 256 action ids: hidden [..., D] -> [..., 256]."""
-    return (hidden @ params["head"]["kernel"][:, cfg.first_action_id:].astype(hidden.dtype)).astype(jnp.float32)
+    kernel = params["head"]["kernel"][:, cfg.first_action_id:cfg.first_action_id + N_BINS]
+    return (hidden @ kernel.astype(hidden.dtype)).astype(jnp.float32)
 
 
 def action_logits(cfg: VLAConfig, logits: jnp.ndarray) -> jnp.ndarray:
     """Restricts logits [..., V] to the 256 action ids: [..., 256] (index = bin)."""
-    return logits[..., cfg.first_action_id:]
+    return logits[..., cfg.first_action_id:cfg.first_action_id + N_BINS]
 
 
 def ar_decode(params, cfg: VLAConfig, obs: Observation):

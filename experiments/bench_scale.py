@@ -1,0 +1,144 @@
+"""Pass costs of the target expanded to a larger architecture, against the hardware's limits.
+
+  python -m experiments.bench_scale --target_scale=llama2-7b --dtype=bfloat16 --batch_sizes=1,16,64 \
+      --out=results/bench_scale.json
+
+Per batch size and pass kind (the prefill: vision tower + the prompt through the decoder;
+one cached token; a verification pass of T tokens under a causal mask; the prefill with T
+candidate tokens appended; one drafter pass over T tokens), the median wall time of a jitted
+call, the bytes it must read (weights it touches, and the KV cache it attends over) and the
+FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
+device's peak (`PEAKS`; H100 SXM and H200: bf16 dense 989 TFLOP/s, HBM 3.35 / 4.8 TB/s).
+Inputs are zeros and the cache is full length: costs do not depend on values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from absl import app, flags, logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from heisd_jax import checkpoint, drafter, results_io, scale, vla
+from heisd_jax.observation import Observation
+from heisd_jax.timing import median_seconds
+from experiments import cli
+
+FLAGS = flags.FLAGS
+cli.define_paths("checkpoint", "drafter")
+flags.DEFINE_enum("target_scale", "llama2-7b", list(scale.SCALE_NAMES), "Architecture the target is expanded to.")
+flags.DEFINE_enum("dtype", "bfloat16", ["float32", "bfloat16"], "Parameters, activations and cache dtype.")
+flags.DEFINE_list("batch_sizes", ["1", "16", "64"], "Batch sizes.")
+cli.positive_int_list("batch_sizes")
+flags.DEFINE_list("verify_tokens", ["8", "48"], "Token counts of the verification and drafter passes.")
+cli.positive_int_list("verify_tokens")
+flags.DEFINE_integer("candidates", 28, "Candidate tokens appended to the prefill (4 actions of 7).")
+flags.DEFINE_bool("unroll", True, "Decoder layers unrolled (else a scan over stacked weights).")
+flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
+flags.DEFINE_string("out", "", "JSON output path.")
+
+# device kind substring -> (HBM bytes/s, dense bf16 FLOP/s)
+PEAKS = {"H100": (3.35e12, 989e12), "H200": (4.8e12, 989e12)}
+
+
+def _peaks():
+    kind = jax.devices()[0].device_kind
+    return next((v for k, v in PEAKS.items() if k in kind), (None, None))
+
+
+def layer_params(cfg: vla.VLAConfig) -> int:
+    d, m = cfg.d_model, cfg.mlp_dim
+    return 4 * d * d + 3 * d * m + 2 * d
+
+
+def pass_cost(cfg: vla.VLAConfig, kind: str, b: int, t: int) -> tuple[float, float]:
+    """(bytes read, FLOPs) of one pass over b rows of t new tokens: every weight it uses once,
+    the KV cache it attends over (all slots: masked slots are read too), and the products."""
+    byte = jnp.dtype(cfg.dtype).itemsize
+    d, s, n_l = cfg.d_model, cfg.cache_slots, cfg.n_layers
+    dec_w = n_l * layer_params(cfg) + d * cfg.vocab  # layers and head
+    logits_tokens = (1 + (t if kind == "prefill+block" else 0)) if kind.startswith("prefill") else t
+    if kind == "drafter":
+        w = layer_params(cfg) + 2 * d * d
+        flops = 2 * b * t * w + 2 * b * t * d * 256
+        return (w + 2 * b * s * d) * byte, flops + 4 * b * t * (s + t) * d
+    if kind.startswith("prefill"):
+        p = cfg.prompt_len + (t if kind == "prefill+block" else 0)
+        vw = cfg.vision_width
+        vis_w = cfg.vision_layers * (4 * vw * vw + 3 * vw * cfg.vision_mlp) + vw * d
+        flops = (2 * b * p * n_l * layer_params(cfg) + 2 * b * logits_tokens * d * cfg.vocab
+                 + 4 * b * n_l * p * p * d + 2 * b * cfg.image_tokens * vis_w
+                 + 4 * b * cfg.vision_layers * cfg.image_tokens ** 2 * vw)
+        return (dec_w + vis_w) * byte, flops
+    kv = 2 * n_l * b * s * d * byte
+    flops = 2 * b * t * n_l * layer_params(cfg) + 2 * b * t * d * cfg.vocab + 4 * b * n_l * t * (s + t) * d
+    return dec_w * byte + kv, flops
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg0, params)
+    dparams = scale.expand_drafter(dparams, cfg0, FLAGS.target_scale, FLAGS.dtype)
+    params, cfg = scale.expand_target(params, cfg0, FLAGS.target_scale, FLAGS.dtype)
+    cfg = dataclasses.replace(cfg, unroll=FLAGS.unroll)
+    counts = scale.n_params(cfg)
+    bw, peak = _peaks()
+    print(f"{FLAGS.target_scale} {FLAGS.dtype} on {jax.devices()[0].device_kind}: decoder "
+          f"{counts['decoder'] / 1e9:.2f}B, vision {counts['vision'] / 1e9:.2f}B parameters; prompt {cfg.prompt_len}, "
+          f"cache {cfg.cache_slots} slots", flush=True)
+    prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
+    prefill_block = jax.jit(lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0])
+    decode = jax.jit(lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0])
+    dstep = jax.jit(lambda dp, c, e, pos, slot, m: drafter.step(dp, cfg, c, e, e, pos, slot, m)[0])
+    rows = []
+    for b in sorted({int(x) for x in FLAGS.batch_sizes}):
+        obs = Observation(image=jnp.zeros((b, *cfg.image_shape), jnp.uint8),
+                          instruction=jnp.ones((b, cfg.text_len), jnp.int32), proprio=jnp.zeros((b, cfg.proprio_dim)))
+        _, _, cache = prefill(params, obs)
+        full = cache.replace(key_mask=jnp.ones_like(cache.key_mask), length=jnp.full((b,), cfg.prompt_len, jnp.int32))
+        dcache = drafter.init_cache(cfg, b).replace(length=full.length, key_mask=full.key_mask)
+
+        def causal(t):
+            tk = jnp.full((b, t), cfg.first_action_id, jnp.int32)
+            return tk, jnp.broadcast_to(jnp.arange(t), (b, t)), jnp.broadcast_to(vla.causal_mask(t, t), (b, t, t))
+
+        calls = {"prefill": (1, lambda: prefill(params, obs)), "decode": (1, lambda: decode(params, full, *causal(1)))}
+        tk, dp, m = causal(FLAGS.candidates)
+        calls["prefill+block"] = (FLAGS.candidates, lambda: prefill_block(params, obs, tk, dp, m))
+        for t in sorted({int(x) for x in FLAGS.verify_tokens}):
+            calls[f"verify{t}"] = (t, lambda t=t: decode(params, full, *causal(t)))
+            emb = jnp.zeros((b, t, cfg.d_model), cfg.dtype)
+            pos = cfg.prompt_len + jnp.broadcast_to(jnp.arange(t), (b, t))
+            mask = jnp.ones((b, t, cfg.cache_slots), bool)
+            calls[f"drafter{t}"] = (t, lambda e=emb, p=pos, mk=mask: dstep(dparams, dcache, e, p, full.length, mk))
+        for kind, (t, fn) in calls.items():
+            ms = 1e3 * median_seconds(fn, FLAGS.reps)
+            base = "drafter" if kind.startswith("drafter") else "prefill+block" if kind == "prefill+block" else \
+                "prefill" if kind == "prefill" else "decode"
+            nbytes, flops = pass_cost(cfg, base, b, t)
+            row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "bytes": nbytes, "flops": flops,
+                   "bandwidth_TBps": nbytes / ms / 1e9, "TFLOPps": flops / ms / 1e9}
+            if bw:
+                row.update(roofline_ms=1e3 * max(nbytes / bw, flops / peak), bandwidth_share=row["bandwidth_TBps"] * 1e12 / bw,
+                           flops_share=row["TFLOPps"] * 1e12 / peak)
+                row["x_roofline"] = ms / row["roofline_ms"]
+            rows.append(row)
+            extra = (f"  {row['bandwidth_share']:5.1%} of HBM  {row['flops_share']:5.1%} of bf16 peak  "
+                     f"{row['x_roofline']:.2f}x roofline") if bw else ""
+            print(f"B={b:<4} {kind:<14} {ms:9.3f} ms  {row['bandwidth_TBps']:6.2f} TB/s  {row['TFLOPps']:7.1f} TFLOP/s"
+                  + extra, flush=True)
+        if FLAGS.out:
+            results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
+                                                     "scale": FLAGS.target_scale, "dtype": FLAGS.dtype,
+                                                     "unroll": FLAGS.unroll, "params": counts, "rows": rows})
+    print(json.dumps({"params": counts}))
+
+
+if __name__ == "__main__":
+    cli.run(main)
