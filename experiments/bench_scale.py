@@ -21,7 +21,6 @@ from absl import app, flags, logging
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from heisd_jax import checkpoint, drafter, results_io, scale, vla
 from heisd_jax.observation import Observation
