@@ -36,7 +36,8 @@ cli.positive_int_list("batch_sizes")
 flags.DEFINE_list("verify_tokens", ["8", "48"], "Token counts of the verification and drafter passes.")
 cli.positive_int_list("verify_tokens")
 flags.DEFINE_integer("candidates", 28, "Candidate tokens appended to the prefill (4 actions of 7).")
-flags.DEFINE_bool("unroll", True, "Decoder layers unrolled (else a scan over stacked weights).")
+flags.DEFINE_enum("layout", "per_layer", ["per_layer", "scan", "unrolled_scan"], "Decoder weights: one array per "
+                  "layer (the expansion's), or stacked under a scan (the trained checkpoints'), rolled or unrolled.")
 flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
 flags.DEFINE_string("out", "", "JSON output path.")
 
@@ -85,7 +86,8 @@ def main(argv):
     dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg0, params)
     dparams = scale.expand_drafter(dparams, cfg0, FLAGS.target_scale, FLAGS.dtype)
     params, cfg = scale.expand_target(params, cfg0, FLAGS.target_scale, FLAGS.dtype)
-    cfg = dataclasses.replace(cfg, unroll=FLAGS.unroll)
+    params, cfg = scale.with_layout(params, cfg, per_layer=FLAGS.layout == "per_layer")
+    cfg = dataclasses.replace(cfg, unroll=FLAGS.layout == "unrolled_scan")
     counts = scale.n_params(cfg)
     bw, peak = _peaks()
     print(f"{FLAGS.target_scale} {FLAGS.dtype} on {jax.devices()[0].device_kind}: decoder "
@@ -135,7 +137,7 @@ def main(argv):
         if FLAGS.out:
             results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
                                                      "scale": FLAGS.target_scale, "dtype": FLAGS.dtype,
-                                                     "unroll": FLAGS.unroll, "params": counts, "rows": rows})
+                                                     "layout": FLAGS.layout, "params": counts, "rows": rows})
     print(json.dumps({"params": counts}))
 
 

@@ -24,7 +24,7 @@ filled with N(0, 0.02) noise, so every product is a real product of a real-sized
 
 `expand_target(params, cfg, name)` and `expand_drafter(dparams, cfg, name)` build the
 weights on the default device, leaf by leaf, from the trained checkpoint: nothing large is
-stored. `SCALES` names the architectures; `scaled_config` checks a name against a target.
+stored. The expanded decoder keeps one weight array per layer (`VLAConfig.per_layer`). `SCALES` names the architectures; `scaled_config` checks a name against a target.
 """
 
 from __future__ import annotations
@@ -101,7 +101,7 @@ def scaled_config(cfg: vla.VLAConfig, name: str | TargetScale) -> vla.VLAConfig:
             raise ValueError(f"target scale {name!r}: {what} head size {width // heads} is not a multiple of the "
                              f"target's {old_w // old_h}")
     return dataclasses.replace(
-        cfg, **new, cache_slots=cfg.cache_slots - cfg.prompt_len + new["image_tokens"] + cfg.text_len + 1,
+        cfg, **new, per_layer=True, cache_slots=cfg.cache_slots - cfg.prompt_len + new["image_tokens"] + cfg.text_len + 1,
         norm_eps=cfg.norm_eps * cfg.d_model / new["d_model"],
         vision_norm_eps=cfg.vision_norm_eps * cfg.vision_width / new["vision_width"])
 
@@ -201,22 +201,17 @@ class _Expander:
                 "mlp_norm": {"scale": self.norm(p["mlp_norm"]["scale"], n.d_model, self.gain, lead)},
                 "mlp": self.mlp(p["mlp"], n.d_model, n.mlp_dim, o.d_model, lead)}
 
-    def decoder_stack(self, p: dict) -> dict:
-        """The scanned blocks [l, ...] -> [L, ...]: the trained layers first, then identity layers
-        (zero attention output and MLP down projection: full cost, no effect)."""
+    def decoder_layers(self, p: dict) -> list[dict]:
+        """The scanned blocks [l, ...] -> L per-layer param trees: the trained layers first, then
+        identity layers (zero attention output and MLP down projection: full cost, no effect)."""
         o, n = self.old, self.new
         trained = self.decoder_layer(p, lead=(o.n_layers,))
-        extra = n.n_layers - o.n_layers
-        if not extra:
-            return trained
-
-        def grow(leaf, name):
-            tail = self.fill((extra, *leaf.shape[1:]))
-            if name in ("out", "down"):
-                tail = jnp.zeros_like(tail)
-            return jnp.concatenate([leaf, tail], 0)
-
-        return jax.tree_util.tree_map_with_path(lambda path, x: grow(x, path[-2].key), trained)
+        layers = [jax.tree.map(lambda x, i=i: x[i], trained) for i in range(o.n_layers)]
+        del trained
+        identity = lambda path, x: (jnp.zeros_like(x) if path[-2].key in ("out", "down")  # noqa: E731
+                                    else self.fill(x.shape))
+        layers += [jax.tree_util.tree_map_with_path(identity, layers[0]) for _ in range(n.n_layers - o.n_layers)]
+        return layers
 
     # -- vision -----------------------------------------------------------------------------
     def vision_attn(self, p: dict) -> dict:
@@ -275,6 +270,21 @@ class _Expander:
         return out
 
 
+def with_layout(params, cfg: vla.VLAConfig, per_layer: bool):
+    """(params, cfg) with the decoder's weights one array per layer ("layer0", ...) or stacked
+    under a scan ("blocks"): the same function either way."""
+    if per_layer == cfg.per_layer:
+        return params, cfg
+    params = dict(params)
+    if per_layer:
+        blocks = params.pop("blocks")
+        params.update({f"layer{i}": jax.tree.map(lambda x, i=i: x[i], blocks) for i in range(cfg.n_layers)})
+    else:
+        layers = [params.pop(f"layer{i}") for i in range(cfg.n_layers)]
+        params["blocks"] = jax.tree.map(lambda *xs: jnp.stack(xs), *layers)
+    return params, dataclasses.replace(cfg, per_layer=per_layer)
+
+
 def _zero_residual_pad(x: jnp.ndarray, d: int) -> jnp.ndarray:
     return x.at[..., d:].set(0)
 
@@ -288,7 +298,7 @@ def expand_target(params, cfg: vla.VLAConfig, name: str | TargetScale, dtype: st
     e = _Expander(cfg, new, dtype, seed)
     d = cfg.d_model
     out = {"vision": e.vision(params["vision"]),
-           "blocks": e.decoder_stack(params["blocks"]),
+           **{f"layer{i}": layer for i, layer in enumerate(e.decoder_layers(params["blocks"]))},
            "final_norm": {"scale": e.norm(params["final_norm"]["scale"], new.d_model, e.gain)},
            "embed": {"embedding": _zero_residual_pad(e.put(params["embed"]["embedding"], (new.vocab, new.d_model)), d)},
            "head": {"kernel": e.put(params["head"]["kernel"], (new.d_model, new.vocab))},

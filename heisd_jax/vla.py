@@ -73,6 +73,10 @@ class VLAConfig:
     vision_heads: int = 0  # 0: n_heads
     vision_mlp: int = 0  # 0: mlp_dim
     norm_eps: float = 1e-6  # RMSNorm epsilon of the decoder (and drafter)
+    # Decoder weights as one array per layer (params "layer0", "layer1", ...) instead of stacked
+    # arrays under a scan ("blocks"): a large model's passes then read each weight in place
+    # (slicing a layer out of stacked arrays makes XLA copy it: ~2x a 7B pass).
+    per_layer: bool = False
     vision_norm_eps: float = 1e-6  # RMSNorm epsilon of the vision tower
 
     @property
@@ -346,11 +350,14 @@ class VLA(nn.Module):
         self.vision = VisionEncoder(cfg)
         self.embed = nn.Embed(cfg.vocab_size, cfg.d_model, dtype=cfg.dtype, embedding_init=nn.initializers.normal(0.02))
         self.proprio_proj = nn.Dense(cfg.d_model, dtype=cfg.dtype)
-        self.blocks = nn.scan(
-            DecoderBlock, variable_axes={"params": 0}, split_rngs={"params": True},
-            in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
-            unroll=cfg.n_layers if self.training or cfg.unroll else 1,
-        )(cfg)
+        if cfg.per_layer:
+            self.layers = [DecoderBlock(cfg, name=f"layer{i}") for i in range(cfg.n_layers)]
+        else:
+            self.blocks = nn.scan(
+                DecoderBlock, variable_axes={"params": 0}, split_rngs={"params": True},
+                in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
+                unroll=cfg.n_layers if self.training or cfg.unroll else 1,
+            )(cfg)
         self.final_norm = nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype)
         self.head = nn.Dense(cfg.vocab_size, use_bias=False, dtype=cfg.dtype)
 
@@ -370,7 +377,15 @@ class VLA(nn.Module):
         `logits_from` on: a prefill needs only its last prompt token's) and the tokens'
         keys/values [L, B, T, H, Dh]."""
         ck, cv = (None, None) if cache is None else (cache.k, cache.v)
-        x, (k, v) = self.blocks(x, ck, cv, positions, cache_mask, block_mask)
+        if self.cfg.per_layer:
+            kv = []
+            for i, layer in enumerate(self.layers):
+                x, out = layer(x, None if ck is None else ck[i], None if cv is None else cv[i], positions, cache_mask,
+                               block_mask)
+                kv.append(out)
+            k, v = jnp.stack([a for a, _ in kv]), jnp.stack([b for _, b in kv])
+        else:
+            x, (k, v) = self.blocks(x, ck, cv, positions, cache_mask, block_mask)
         hidden = self.final_norm(x)
         return hidden, self.head(hidden[:, logits_from:]).astype(jnp.float32), (k, v)
 

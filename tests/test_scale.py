@@ -104,6 +104,16 @@ def test_drafter_and_speculative_decoding_are_exact(expanded, request):
     assert np.asarray(stats["target_passes"]).max() < 7
 
 
+def test_layer_layouts_compute_the_same_function(expanded):
+    (tp, _), (big_tp, _, cfg) = expanded["random"]
+    stacked, stacked_cfg = scale.with_layout(big_tp, cfg, per_layer=False)
+    assert cfg.per_layer and not stacked_cfg.per_layer and "blocks" in stacked and "layer0" not in stacked
+    obs = make_obs(6)
+    np.testing.assert_allclose(vla.prefill(stacked, stacked_cfg, obs)[0], vla.prefill(big_tp, cfg, obs)[0], **TOL)
+    back, back_cfg = scale.with_layout(stacked, stacked_cfg, per_layer=True)
+    assert back_cfg == cfg and jax.tree.all(jax.tree.map(lambda a, b: bool(jnp.all(a == b)), back, big_tp))
+
+
 def test_named_scales_are_larger_than_the_shipped_geometry():
     shipped = dataclasses.replace(vla.VLAConfig(n_views=2, mlp_dim=680))
     big = scale.scaled_config(shipped, "llama2-7b")
