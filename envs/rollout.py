@@ -134,6 +134,16 @@ def host_loop(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.n
         state, pstate = step(state, pstate, act_keys, jnp.int32(t))
 
 
+def record_eval_starts(env: TabletopEnv, policy: Policy, n_envs: int, n_steps: int):
+    """`record_episodes` of `policy` in n_envs envs cycling through the env's fixed evaluation
+    initial states (`TabletopEnv.cycling_eval_starts`), one jitted call, brought to the host.
+    Returns (task ids [n_envs], the trajectory dict of [n_steps, n_envs, ...] numpy arrays)."""
+    tids, keys = env.cycling_eval_starts(n_envs)
+    run = jax.jit(lambda p, k, t: record_episodes(env, dataclasses.replace(policy, params=p), k, t, n_steps))
+    _, traj = jax.device_get(run(policy.params, keys, jnp.asarray(tids, jnp.int32)))
+    return tids, traj
+
+
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
                     exec_noise: float = 0.0, teacher: Policy | None = None, beta: float = 0.0):
     """Like run_episodes for exactly `n_steps`, also returning the trajectory: a dict of

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
-from absl import app, flags, logging
+from absl import flags, logging
 
 import jax
 import jax.numpy as jnp

@@ -13,7 +13,6 @@ identical, and the mean bin distance where they are not.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import time
 
@@ -57,10 +56,8 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     n = FLAGS.envs
     policy = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
-    tids, keys = env.cycling_eval_starts(n)
     t0 = time.perf_counter()
-    run = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p), k, t, FLAGS.steps))
-    _, traj = jax.device_get(run(policy.params, keys, jnp.asarray(tids, jnp.int32)))
+    tids, traj = rollout.record_eval_starts(env, policy, n, FLAGS.steps)
     print(f"recorded {n} envs x {FLAGS.steps} steps in {time.perf_counter() - t0:.0f}s", flush=True)
     live = ~traj["done"]  # [T, B]
     instr = np.asarray(env.instructions)[tids]
