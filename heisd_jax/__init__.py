@@ -2,7 +2,7 @@
 
 The decode API (docs/decode_api.md), importable from here without the simulator:
     Observation, VLAConfig, check_observation, decode_action, SpecConfig, load_policy,
-    load_drafter, ActionTokenizer
+    load_drafter, ActionTokenizer, expand_target, expand_drafter (a 7B VLA's costs: docs/scale.md)
 Names resolve on first use, so `import heisd_jax` itself imports nothing heavy and has no
 side effects (the env package, `envs`, sets its own XLA flags when imported).
 """
@@ -20,6 +20,8 @@ _EXPORTS = {
     "load_policy": "heisd_jax.checkpoint",
     "load_drafter": "heisd_jax.checkpoint",
     "ActionTokenizer": "heisd_jax.tokenizer",
+    "expand_target": "heisd_jax.scale",
+    "expand_drafter": "heisd_jax.scale",
 }
 __all__ = list(_EXPORTS)
 
