@@ -139,8 +139,8 @@ def _rotary_index(hd: int, new_hd: int) -> np.ndarray:
 
 
 class _Expander:
-    """Builds expanded leaves: `put(old, new_shape, lead)` places old in a fresh leaf of
-    new_shape (leading dims of old first along every axis), the rest filled or zeroed."""
+    """Builds the expanded parameter trees of one target (or drafter), config old -> new, in
+    dtype; `lead` arguments are the leading axes of stacked layers."""
 
     def __init__(self, old: vla.VLAConfig, new: vla.VLAConfig, dtype, seed: int):
         self.old, self.new, self.fill, self.dtype = old, new, _Filler(seed, dtype), jnp.dtype(dtype)
