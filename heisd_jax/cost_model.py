@@ -24,8 +24,10 @@ Calibrate on an otherwise idle device: a table measured while other programs sha
 is wrong (seen: a drafter pass "costing" 0 ms and a retrieval option 2x its real cost), and
 it stays cached; delete the file (or pass another cache directory) to measure again.
 
-A table is tied to its key (device, platform, jax version, model fingerprints, dtype, matmul
-precision, batch size, options, number of candidates). `load_cached` reads the cached file only if its key
+A table is tied to its key (device, platform, jax version, the model's architecture, dtype,
+matmul precision, batch size, options, number of candidates): costs depend on the shapes, not
+on the weights' values, so a retrained model of the same architecture shares its table, and a
+7B expansion's key costs nothing to compute. `load_cached` reads the cached file only if its key
 equals the current one. Measuring is always asked for explicitly (`load_or_calibrate(...,
 measure=True)`, the entry points' --calibrate_costs): a method never spends minutes
 calibrating behind a user's back.
@@ -44,11 +46,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import budget, cache_dirs, checkpoint, drafter, hybrid, results_io, retrieval, spec_decode, vla
+from heisd_jax import budget, cache_dirs, drafter, hybrid, results_io, retrieval, spec_decode, vla
 from heisd_jax.timing import in_graph_ms
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
-FORMAT = 4  # 4: the copy-free KV cache (vla.Block) changed every cost; older tables are re-measured
+FORMAT = 5  # 5: keyed by the model's architecture (4: weight fingerprints); older tables are re-measured
 DEFAULT_CACHE = cache_dirs.cache_root() / "costs"
 
 
@@ -64,11 +66,12 @@ def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: in
     return obs, cand
 
 
-def table_key(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict:
+def table_key(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict:
     dev = jax.devices()[0]
+    numerics = ("dtype", "matmul_precision", "unroll")
+    model = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in numerics}
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
-            "target": checkpoint.fingerprint(params["target"]), "drafter": checkpoint.fingerprint(params["drafter"]),
-            "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll, "batch": int(batch),
+            "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll, "batch": int(batch),
             "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}
@@ -214,7 +217,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
             t, r = timed(jnp.zeros((batch,), bool), draws)
             rows[name] = row(float(np.median(t - r * round_ms)), round_ms, float(np.median(t)), float(np.median(r)))
     fixed, rnd, whole, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
-    return CostTable(key=table_key(params, cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
+    return CostTable(key=table_key(cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
                      round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)
 
@@ -233,7 +236,7 @@ def load_cached(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: in
     """The cached table for this key, or None (logging why: none, another key, unreadable)."""
     if directory is None:
         return None
-    key = table_key(params, cfg, hcfg, batch)
+    key = table_key(cfg, hcfg, batch)
     path = cache_file(directory, key)
     if not path.exists():
         return None

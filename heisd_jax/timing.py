@@ -44,6 +44,9 @@ def median_seconds(fn, reps: int) -> float:
     return float(np.median(wall_seconds(fn, reps)))
 
 
+SLOW_PIECE_S, SLOW_REPS = 5e-3, 3  # `in_graph_ms` stops after SLOW_REPS pairs for pieces above 5 ms
+
+
 def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 7) -> float:
     """Marginal cost in ms of one `fn(*args)` inside a compiled program: the median over
     `reps` back-to-back pairs of (n[1] runs - n[0] runs) / (n[1] - n[0]).
@@ -52,15 +55,20 @@ def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: i
     an argument), so the ~0.1-1.5 ms of dispatch per jitted call is not counted per run. The
     loop carries its inputs through an optimization barrier, so XLA can neither hoist the
     work out of the loop nor drop it. The median over pairs, since at batch 1 a piece costs
-    0.03-0.4 ms and one pair of runs is that noisy. Calls with the same `fn` object share
-    one compiled loop."""
+    0.03-0.4 ms and one pair of runs is that noisy; a piece above 5 ms (a 7B model's pass)
+    stops after 3 pairs. Calls with the same `fn` object share one compiled loop."""
     f = _looped(fn)
 
     def seconds(count):
         return timed(lambda: f(count, args))[1]
     seconds(n[1])  # compile + warm-up
-    diffs = [seconds(n[1]) - seconds(n[0]) for _ in range(reps)]
+    diffs = []
+    for _ in range(reps):
+        diffs.append(seconds(n[1]) - seconds(n[0]))
+        if len(diffs) == SLOW_REPS and np.median(diffs) / (n[1] - n[0]) > SLOW_PIECE_S:
+            break  # a slow piece (a large model's pass) is not noisy at this scale: spare the device
     return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0])
+
 
 
 @functools.lru_cache(maxsize=64)

@@ -235,13 +235,18 @@ def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     monkeypatch.setattr(cost_model, "calibrate", fail)
     again = cost_model.load_or_calibrate(params, CFG, one, 2, tmp_path, logs.append)
     assert again == table
+    # Costs depend on shapes, not values: other weights of the same architecture share the table;
+    # another architecture (e.g. a scaled-up target) has its own key.
+    other = dict(params, target=jax.tree.map(lambda x: x * 2, params["target"]))
+    assert cost_model.load_or_calibrate(other, CFG, one, 2, tmp_path, logs.append) == table
+    assert cost_model.table_key(dataclasses.replace(CFG, mlp_dim=2 * CFG.mlp_dim), one, 2) != table.key
 
     # A file measured elsewhere (here: another device) under this key's name is redone, never trusted.
     measured = []
 
     def fake(params, cfg, hcfg, batch, reps=5):
         measured.append(batch)
-        return dataclasses.replace(table, key=cost_model.table_key(params, cfg, hcfg, batch), seconds=0.0)
+        return dataclasses.replace(table, key=cost_model.table_key(cfg, hcfg, batch), seconds=0.0)
     monkeypatch.setattr(cost_model, "calibrate", fake)
     raw = json.loads(files[0].read_text())
     raw["key"]["device"] = "another GPU"
