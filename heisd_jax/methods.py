@@ -57,6 +57,7 @@ def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", target, drafter=None
     or not. Returns (cfg, target params[, drafter params])."""
     big = scale.scaled_config(cfg, settings.target_scale)  # refuses a scale smaller than the target first
     if big is not cfg:
+        scale.check_fits(cfg, settings.target_scale, settings.dtype)
         dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, settings.target_scale, settings.dtype)
         target, cfg = scale.expand_target(target, cfg, settings.target_scale, settings.dtype)
         drafter = dparams

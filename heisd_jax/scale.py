@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 
 import jax
 import jax.numpy as jnp
@@ -104,6 +105,34 @@ def scaled_config(cfg: vla.VLAConfig, name: str | TargetScale) -> vla.VLAConfig:
         cfg, **new, per_layer=True, cache_slots=cfg.cache_slots - cfg.prompt_len + new["image_tokens"] + cfg.text_len + 1,
         norm_eps=cfg.norm_eps * cfg.d_model / new["d_model"],
         vision_norm_eps=cfg.vision_norm_eps * cfg.vision_width / new["vision_width"])
+
+
+def device_bytes() -> int | None:
+    """Memory of the default device (a GPU's allocator limit; on CPU the host's RAM), if known."""
+    dev = jax.devices()[0]
+    stats = dev.memory_stats() or {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"])
+    if dev.platform == "cpu" and hasattr(os, "sysconf"):
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    return None
+
+
+def check_fits(cfg: vla.VLAConfig, name: str | TargetScale, dtype: str, share: float = 0.8) -> None:
+    """Refuses, before any weight is made, a scale whose target and drafter weights in `dtype`
+    would take more than `share` of the default device's memory, naming the scales that fit."""
+    limit = device_bytes()
+    if limit is None or _resolve(name) is None:
+        return
+
+    def need(n):
+        c = scaled_config(cfg, n)
+        return (sum(n_params(c).values()) + 4 * c.d_model ** 2 + 3 * c.d_model * c.mlp_dim) * jnp.dtype(dtype).itemsize
+    if need(name) > share * limit:
+        fits = [n for n in SCALE_NAMES if n == SHIPPED or need(n) <= share * limit]
+        raise ValueError(f"target scale {name!r} in {dtype} needs {need(name) / 2**30:.1f} GiB of weights, more than "
+                         f"{share:.0%} of this {jax.devices()[0].device_kind}'s {limit / 2**30:.1f} GiB; valid here: "
+                         f"{', '.join(fits)}")
 
 
 def n_params(cfg: vla.VLAConfig) -> dict[str, int]:

@@ -124,6 +124,14 @@ def test_named_scales_are_larger_than_the_shipped_geometry():
     assert 0.8e9 < scale.n_params(scale.scaled_config(shipped, "llama-1b"))["decoder"] < 1.2e9
 
 
+def test_a_scale_the_device_cannot_hold_is_refused_before_any_weight_is_made(monkeypatch):
+    shipped = vla.VLAConfig(n_views=2, mlp_dim=680)
+    monkeypatch.setattr(scale, "device_bytes", lambda: 8 * 2**30)  # an 8 GiB device
+    scale.check_fits(shipped, "llama-1b", "bfloat16")  # ~3 GiB
+    with pytest.raises(ValueError, match=r"'llama2-7b' in bfloat16 needs 14\.\d GiB .* valid here: shipped, llama-1b$"):
+        scale.check_fits(shipped, "llama2-7b", "bfloat16")
+
+
 def test_bad_scales_are_refused_with_the_valid_choices():
     with pytest.raises(ValueError, match="unknown target scale 'llama3'; valid: shipped, llama2-7b, llama-1b"):
         scale.scaled_config(CFG, "llama3")
