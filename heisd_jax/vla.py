@@ -73,11 +73,11 @@ class VLAConfig:
     vision_heads: int = 0  # 0: n_heads
     vision_mlp: int = 0  # 0: mlp_dim
     norm_eps: float = 1e-6  # RMSNorm epsilon of the decoder (and drafter)
+    vision_norm_eps: float = 1e-6  # RMSNorm epsilon of the vision tower
     # Decoder weights as one array per layer (params "layer0", "layer1", ...) instead of stacked
     # arrays under a scan ("blocks"): a large model's passes then read each weight in place
     # (slicing a layer out of stacked arrays makes XLA copy it: ~2x a 7B pass).
     per_layer: bool = False
-    vision_norm_eps: float = 1e-6  # RMSNorm epsilon of the vision tower
 
     @property
     def n_patches(self) -> int:
