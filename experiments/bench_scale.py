@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
-from absl import flags, logging
+from absl import app, flags, logging
 
 import jax
 import jax.numpy as jnp
@@ -83,6 +83,10 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
+    try:
+        scale.check_fits(cfg0, FLAGS.target_scale, FLAGS.dtype)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
     dparams, _ = checkpoint.load_drafter(FLAGS.drafter, cfg0, params)
     dparams = scale.expand_drafter(dparams, cfg0, FLAGS.target_scale, FLAGS.dtype)
     params, cfg = scale.expand_target(params, cfg0, FLAGS.target_scale, FLAGS.dtype)

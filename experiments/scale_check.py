@@ -51,7 +51,8 @@ def main(argv):
     try:
         env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
         params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-        scale.scaled_config(cfg, FLAGS.target_scale)
+        for dtype in FLAGS.dtypes:
+            scale.check_fits(cfg, FLAGS.target_scale, dtype)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     n = FLAGS.envs
