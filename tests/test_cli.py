@@ -30,6 +30,10 @@ CASES = [
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
     ("ship_autotune", ["--methods=ar,nope"], "unknown ['nope']; choose from ['ar', 'drafter', 'expert'"),
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
+    ("evaluate", ["--method=expert", "--target_scale=llama-1b"], "--method=expert takes none of --target_scale"),
+    ("bench_methods", ["--target_scale=huge"], "<shipped|llama2-7b|llama-1b>"),
+    ("bench_scale", ["--target_scale=llama3"], "<shipped|llama2-7b|llama-1b>"),
+    ("scale_check", ["--dtypes=float16"], "--dtypes: unknown ['float16']; valid: float32, bfloat16"),
 ]
 
 
