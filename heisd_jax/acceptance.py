@@ -2,10 +2,10 @@
 
 Token-wise (each drafted token on its own, Spec-VLA): `strict` (the same bin: lossless,
 speculative decoding equals AR token for token) and `token_relaxed` (within `relax_bins`
-bins). Sequence-wise for whole retrieved actions (HEISD.md section 5, our design):
+bins). Sequence-wise for whole retrieved actions (our design, docs/method.md):
 `seq_relaxed` bounds each token's bin distance and the weighted cumulative distance of the
-accepted prefix, and requires the gripper token to agree on open/closed. Verify-skip (HEISD.md
-section 4) decides when a retrieved action is executed without a target pass.
+accepted prefix, and requires the gripper token to agree on open/closed. Verify-skip (the
+paper's) decides when a retrieved action is executed without a target pass.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ SKIP_SOURCES = ("retrieval", "recent")  # what a skipped step executes: the data
 @dataclasses.dataclass(frozen=True)
 class SkipConfig:
     enabled: bool = True
-    source: str = "retrieval"  # "retrieval": the datastore's top candidate (HEISD.md); "recent": repeat the last action
+    source: str = "retrieval"  # "retrieval": the datastore's top candidate (the paper); "recent": repeat the last action
     eps: float = 0.05  # retrieval: nearest-key squared distance under which retrieval is trusted
     r_agree: int = 6  # retrieval: the top `n_agree` candidates agree within this many bins on every token
     n_agree: int = 3
@@ -93,7 +93,7 @@ class SkipConfig:
 
 def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand_bins: jnp.ndarray,
              valid: jnp.ndarray, last_whole: jnp.ndarray, skips: jnp.ndarray) -> jnp.ndarray:
-    """Verify-skip with source "retrieval" (HEISD.md section 5): whether a row executes its top
+    """Verify-skip with source "retrieval" (the paper's): whether a row executes its top
     retrieved action without a target pass. dist [B, N]
     squared distances, cand_bins [B, N, 7], valid [B, N], last_whole [B] (the last verified
     retrieval action was accepted whole), skips [B] consecutive skips so far."""

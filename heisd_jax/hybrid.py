@@ -1,5 +1,5 @@
 """The HeiSD decode step: retrieval drafts or drafter trees, chosen per env by the kinematic
-boundary, batched and jitted (HEISD.md section 7).
+boundary, batched and jitted (docs/method.md).
 
 Per env and control step (`step`):
   1. kinematics: the fused metric M from the end-effector's MJX kinematics and the
@@ -14,7 +14,7 @@ Per env and control step (`step`):
      expert actions match them). The skipped action comes first: the datastore's top one, or
      with `skip.source="recent"` the env's last action.
   3. verify-skip: a confident retrieval-mode row executes its first candidate with no target
-     pass, at most `k_skip` times in a row. Source "retrieval" (HEISD.md section 5,
+     pass, at most `k_skip` times in a row. Source "retrieval" (the paper's,
      `rules.may_skip`): the datastore's top action, when it is near and its neighbours
      agree; source "recent" (our design, `rules.may_repeat`): the last action again, once
      `n_confirm` verified steps in a row each accepted their previous action whole.

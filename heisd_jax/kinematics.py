@@ -1,4 +1,4 @@
-"""HeiSD's kinematic fused metric and the hybrid boundary (HEISD.md section 6; the formula
+"""HeiSD's kinematic fused metric and the hybrid boundary (docs/method.md; the formula
 is our design, following the paper's design card).
 
 Features per env and control step, read from the MJX state's end-effector kinematics

@@ -182,7 +182,7 @@ class HeiSDSettings(RetrievalSettings):
                           "pass (off with strict acceptance, or without the candidates its source needs, unless "
                           "given).")
     skip_source: str = _setting("recent", "Verify-skip: what a skipped step executes: the env's last action again "
-                                "(recent), or the datastore's top candidate (retrieval, HEISD.md; rarely confident "
+                                "(recent), or the datastore's top candidate (retrieval, the paper's; rarely confident "
                                 "enough to fire on the shipped stack).", SKIP_SOURCES)
     n_confirm: int = _setting(1, "Verify-skip from recent actions: the last this many verified steps each accepted "
                               "their previous action whole.")
