@@ -572,6 +572,15 @@ def ar_decode(params, cfg: VLAConfig, obs: Observation):
     return jnp.concatenate([first[:, None], rest.T], 1), ACTION_DIM
 
 
+def ar_action(params, cfg: VLAConfig, obs: Observation) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
+    """`ar_decode` with the per-row statistics every decoding method reports: (tokens [B, 7],
+    {"target_passes", "tokens"}, each [B] float32)."""
+    tokens, passes = ar_decode(params, cfg, obs)
+    b = tokens.shape[0]
+    return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
+                    "tokens": jnp.full((b,), ACTION_DIM, jnp.float32)}
+
+
 def ar_continue(params, cfg: VLAConfig, cache: KVCache, out: jnp.ndarray, n_out: jnp.ndarray):
     """Greedy AR decoding of the rest of a partly decoded action: out [B, 7] token ids
     (valid j < n_out [B], 1..7), the cache holding the prompt and out[:, :n_out - 1] (the
@@ -619,10 +628,7 @@ def decode_action(params, cfg: VLAConfig, obs: Observation, spec=None) -> tuple[
 
 def _decode_action(params, obs: Observation, cfg: VLAConfig, spec):
     if spec is None:
-        tokens, passes = ar_decode(params, cfg, obs)
-        b = tokens.shape[0]
-        return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
-                        "tokens": jnp.full((b,), ACTION_DIM, jnp.float32)}
+        return ar_action(params, cfg, obs)
     from heisd_jax import spec_decode  # noqa: PLC0415 (spec_decode imports this module)
 
     return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)

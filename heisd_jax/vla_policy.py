@@ -42,10 +42,7 @@ def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer,
 
 def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, Stats]:
     """Greedy autoregressive decoding (the baseline): 7 target passes per action."""
-    tokens, passes = vla.ar_decode(params, cfg, obs)
-    b = tokens.shape[0]
-    return tokens, {"target_passes": jnp.full((b,), passes, jnp.float32),
-                    "tokens": jnp.full((b,), vla.ACTION_DIM, jnp.float32)}
+    return vla.ar_action(params, cfg, obs)
 
 
 def drafter_sd(spec):
