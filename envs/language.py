@@ -23,9 +23,19 @@ WORD_TO_ID = {w: i for i, w in enumerate(VOCAB)}
 assert WORD_TO_ID[PAD] == PAD_ID
 
 
-def encode(text: str, length: int = MAX_INSTRUCTION_TOKENS) -> np.ndarray:
-    """Instruction text -> [length] int32 ids (BOS, words, EOS, PAD...)."""
-    ids = [WORD_TO_ID[BOS]] + [WORD_TO_ID.get(w, WORD_TO_ID[UNK]) for w in text.lower().split()] + [WORD_TO_ID[EOS]]
+def encode(text: str, length: int = MAX_INSTRUCTION_TOKENS, unknown: str = "unk") -> np.ndarray:
+    """Instruction text -> [length] int32 ids (BOS, words, EOS, PAD...). A word outside the
+    vocabulary (the words of the suites' instructions, which the shipped target was trained on)
+    becomes UNK with `unknown="unk"` (the policy then sees an instruction it never saw; it
+    still decodes), or raises ValueError naming it with `unknown="error"`."""
+    if unknown not in ("unk", "error"):
+        raise ValueError(f"unknown={unknown!r}; valid: unk, error")
+    words = text.lower().split()
+    missing = [w for w in words if w not in WORD_TO_ID]
+    if missing and unknown == "error":
+        raise ValueError(f"instruction {text!r} has words outside the vocabulary: {missing}; the vocabulary is "
+                         f"envs.language.VOCAB ({len(VOCAB) - 4} words)")
+    ids = [WORD_TO_ID[BOS]] + [WORD_TO_ID.get(w, WORD_TO_ID[UNK]) for w in words] + [WORD_TO_ID[EOS]]
     if len(ids) > length:
         raise ValueError(f"instruction has {len(ids)} tokens, more than {length}: {text!r}")
     return np.array(ids + [WORD_TO_ID[PAD]] * (length - len(ids)), np.int32)
