@@ -22,7 +22,6 @@ from flax import struct
 from mujoco import mjx
 
 from envs import camera, ik, language, physics, proprio, robot, rotations, scene, tasks as tasks_lib
-from heisd_jax.observation import Observation
 
 N_LAYOUT_TRIES = 16  # candidate layouts drawn per reset; the first valid one is used
 
@@ -34,6 +33,17 @@ class EnvConfig:
     render: bool = True  # False: obs.image is all zeros (for experts and physics benchmarks)
     arm_init_noise: float = 0.02  # rad, uniform noise on the ready pose at reset
     physics: physics.PhysicsConfig = physics.PhysicsConfig()  # integrator, force limits (envs/physics.py)
+
+
+@struct.dataclass
+class Observation:
+    """What one env shows a policy at a control step (vmapped: leading batch axes). The
+    fields and formats are the decode core's `heisd_jax.observation.Observation`; the
+    evaluation layer converts (`heisd_jax.vla_policy.observation`), so neither imports the other."""
+
+    image: jnp.ndarray  # [H, W * n_views, 3] uint8: views tiled left to right (envs.camera)
+    instruction: jnp.ndarray  # [MAX_INSTRUCTION_TOKENS] int32 ids of envs.language
+    proprio: jnp.ndarray  # [8] float32: ee position, ee quaternion, jaw opening
 
 
 @struct.dataclass

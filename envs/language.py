@@ -1,16 +1,16 @@
 """The instruction vocabulary: one word per token, built from every suite's instructions.
-Ids follow the decode core's instruction format (`heisd_jax.observation`): PAD is id 0 and
-an instruction is TEXT_LEN tokens."""
+Ids follow the decode core's instruction format (`heisd_jax.observation`, which tests pin
+these constants to): PAD is id 0 and an instruction is 20 tokens."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from envs.tasks import ALL_TASKS
-from heisd_jax.observation import PAD_ID, TEXT_LEN
 
 PAD, BOS, EOS, UNK = "<pad>", "<bos>", "<eos>", "<unk>"
-MAX_INSTRUCTION_TOKENS = TEXT_LEN  # BOS + words + EOS, padded
+PAD_ID = 0
+MAX_INSTRUCTION_TOKENS = 20  # BOS + words + EOS, padded
 
 
 def _build_vocab() -> tuple[str, ...]:

@@ -15,7 +15,7 @@ _EXPORTS = {
     "Observation": "heisd_jax.observation",
     "VLAConfig": "heisd_jax.vla",
     "check_observation": "heisd_jax.vla",
-    "decode_action": "heisd_jax.vla",
+    "decode_action": "heisd_jax.spec_decode",
     "SpecConfig": "heisd_jax.spec_decode",
     "load_policy": "heisd_jax.checkpoint",
     "load_drafter": "heisd_jax.checkpoint",

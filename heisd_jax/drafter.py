@@ -71,7 +71,7 @@ def _causal_pass(dparams, cfg: vla.VLAConfig, emb, feat, key_ok):
     attending to the earlier entries whose key_ok [B, T] holds, and to itself."""
     b, t, _ = emb.shape
     slots = jnp.arange(cfg.cache_slots)
-    slot_ok = vla._pad_to(key_ok, cfg.cache_slots)
+    slot_ok = vla.pad_to(key_ok, cfg.cache_slots)
     mask = (vla.causal_mask(t, cfg.cache_slots)[None] & slot_ok[:, None, :]) | (slots[None, None, :] == jnp.arange(t)[None, :, None])
     positions = jnp.broadcast_to(jnp.arange(t), (b, t))
     out, cache = step(dparams, cfg, init_cache(cfg, b), emb, feat, positions, jnp.zeros((b,), jnp.int32), mask)

@@ -295,3 +295,32 @@ def spec_decode(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, obs: vla
                                                   slack=spec.depth + 1))
     b = logits.shape[0]
     return s.out[:, :ACTION_DIM], dict(s.stats, tokens=jnp.full((b,), ACTION_DIM, jnp.float32))
+
+
+def decode_action(params, cfg: vla.VLAConfig, obs: vla.Observation,
+                  spec: SpecConfig | None = None) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
+    """Greedy decoding of one action per observation row, in one jitted call: the public
+    decode entry (docs/decode_api.md).
+
+    spec None: autoregressive decoding (`vla.ar_decode`); params are the target's parameters.
+    spec a `SpecConfig`: drafter speculative decoding (`spec_decode`);
+    params = {"target": target params, "drafter": drafter params}. With strict acceptance
+    (the default) its tokens equal AR's.
+    The observation is checked first (`vla.check_observation`, outside jit). Returns action
+    token ids [B, 7] int32 in [cfg.first_action_id, cfg.vocab_size) (bin = id -
+    first_action_id; `ActionTokenizer.decode` maps ids to actions) and per-row statistics,
+    each [B] float32: target_passes, tokens (= 7), and for speculative decoding also
+    drafter_passes and rounds. Compiles once per (cfg, spec, batch shape)."""
+    vla.check_observation(cfg, obs)
+    if spec is not None:
+        spec.check_fits(cfg)
+    return _decode_action_jit(params, obs, cfg, spec)
+
+
+def _decode_action(params, obs: vla.Observation, cfg: vla.VLAConfig, spec):
+    if spec is None:
+        return vla.ar_action(params, cfg, obs)
+    return spec_decode(params["target"], params["drafter"], cfg, spec, obs)
+
+
+_decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))

@@ -8,8 +8,8 @@ Everything is a pure function of (params, cache, inputs):
                                                   tree verification: T nodes + tree mask)
                                                   -> logits, hidden, their keys/values
     commit(cache, block, src, n)                  write n of those tokens into the cache
-and the public entry `decode_action(params, cfg, obs, spec=None)` -> (tokens [B, 7], stats),
-which checks the observation (`check_observation`) and decodes one action in one jitted call.
+and `ar_decode` / `ar_action`, greedy AR over them (the public entry that also speculates is
+`spec_decode.decode_action`).
 The KV cache has a static number of slots; each row has its own length and key mask, so
 rows can accept different numbers of tokens. A pass never writes the cache: attention
 reads the committed slots and the pass's own block (`Block`) side by side, and `commit`
@@ -400,7 +400,8 @@ class VLA(nn.Module):
         return logits, hidden
 
 
-def _pad_to(mask, slots):
+def pad_to(mask, slots):
+    """[B, T] -> [B, slots], padded with False."""
     return jnp.pad(mask, ((0, 0), (0, slots - mask.shape[1])))
 
 
@@ -482,7 +483,7 @@ def _prefill(params, cfg: VLAConfig, obs: Observation, block):
     # logits [B, 1 + T, V]: the last prompt token's, then the block's
     x, (hidden, logits, (k, v)) = nn.apply(fn, model)({"params": params})
     pad = ((0, 0), (0, 0), (0, cfg.cache_slots - p), (0, 0), (0, 0))
-    cache = KVCache(k=jnp.pad(k[:, :, :p], pad), v=jnp.pad(v[:, :, :p], pad), key_mask=_pad_to(key_ok, cfg.cache_slots),
+    cache = KVCache(k=jnp.pad(k[:, :, :p], pad), v=jnp.pad(v[:, :, :p], pad), key_mask=pad_to(key_ok, cfg.cache_slots),
                     length=jnp.full((b,), p, jnp.int32))
     return logits, hidden, x, cache, Block(k=k[:, :, p:], v=v[:, :, p:])
 
@@ -605,33 +606,3 @@ def ar_continue(params, cfg: VLAConfig, cache: KVCache, out: jnp.ndarray, n_out:
     _, out, _, passes = jax.lax.while_loop(lambda c: jnp.any(c[2] < ACTION_DIM), body,
                                            (cache, out, n_out.astype(jnp.int32), jnp.zeros((b,), jnp.int32)))
     return out, passes
-
-
-def decode_action(params, cfg: VLAConfig, obs: Observation, spec=None) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
-    """Greedy decoding of one action per observation row, in one jitted call: the public
-    decode entry (docs/decode_api.md).
-
-    spec None: autoregressive decoding (`ar_decode`); params are the target's parameters.
-    spec a `spec_decode.SpecConfig`: drafter speculative decoding (`spec_decode.spec_decode`);
-    params = {"target": target params, "drafter": drafter params}. With strict acceptance
-    (the default) its tokens equal AR's.
-    The observation is checked first (`check_observation`, outside jit). Returns action
-    token ids [B, 7] int32 in [cfg.first_action_id, cfg.vocab_size) (bin = id -
-    first_action_id; `ActionTokenizer.decode` maps ids to actions) and per-row statistics,
-    each [B] float32: target_passes, tokens (= 7), and for speculative decoding also
-    drafter_passes and rounds. Compiles once per (cfg, spec, batch shape)."""
-    check_observation(cfg, obs)
-    if spec is not None:
-        spec.check_fits(cfg)
-    return _decode_action_jit(params, obs, cfg, spec)
-
-
-def _decode_action(params, obs: Observation, cfg: VLAConfig, spec):
-    if spec is None:
-        return ar_action(params, cfg, obs)
-    from heisd_jax import spec_decode  # noqa: PLC0415 (spec_decode imports this module)
-
-    return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)
-
-
-_decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))

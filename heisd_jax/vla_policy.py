@@ -27,8 +27,9 @@ DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, S
 
 
 def observation(states: EnvState) -> vla.Observation:
-    """The VLA's inputs from a batch of env states (the env's observation type is the VLA's)."""
-    return states.obs
+    """The VLA's inputs from a batch of env states (the env's observation, field for field)."""
+    o = states.obs
+    return vla.Observation(image=o.image, instruction=o.instruction, proprio=o.proprio)
 
 
 def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn,

@@ -42,6 +42,13 @@ def test_default_location_follows_the_environment(monkeypatch, tmp_path):
     assert cli.default_compilation_cache() == str(tmp_path / "heisd" / "jax_compilation_cache")
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "jax"))
     assert cli.default_compilation_cache() == str(tmp_path / "jax")
+    from envs import _xla
+    from heisd_jax import cache_dirs
+
+    for var in ("JAX_COMPILATION_CACHE_DIR", "HEISD_CACHE", "XDG_CACHE_HOME"):  # envs keeps its own copy: the same
+        assert _xla.cache_root() == cache_dirs.cache_root()
+        monkeypatch.delenv(var)
+    assert _xla.cache_root() == cache_dirs.cache_root()
 
 
 def test_compiled_programs_are_written_to_the_cache(tmp_path, restore_cache):

@@ -1,4 +1,4 @@
-"""The public decode call (`vla.decode_action`): its documented example runs, it equals the
+"""The public decode call (`heisd_jax.decode_action`, `spec_decode.decode_action`): its documented example runs, it equals the
 decoding functions it wraps, and bad observations fail at the boundary with the field,
 the given and the expected shape."""
 

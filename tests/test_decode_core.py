@@ -1,10 +1,13 @@
 """The decode core imports and decodes without the simulator, and its text constants agree
 with the env's vocabulary."""
 
+import ast
+import dataclasses
 import json
 import os
 import subprocess
 import sys
+import types
 from pathlib import Path
 
 import numpy as np
@@ -65,5 +68,45 @@ def test_unknown_instruction_words_are_unk_or_refused_as_asked():
         language.encode("pick up the red block", unknown="ignore")
 
 
-def test_env_and_model_share_one_observation_type():
-    assert envs.env.Observation is vla.Observation is observation.Observation
+def test_env_and_model_observations_agree_field_for_field():
+    from heisd_jax import vla_policy  # the evaluation layer: it converts one into the other
+
+    assert vla.Observation is observation.Observation and envs.env.Observation is not vla.Observation
+    names = lambda cls: [f.name for f in dataclasses.fields(cls)]  # noqa: E731
+    assert names(envs.env.Observation) == names(vla.Observation)
+    env_obs = envs.env.Observation(image=np.zeros((1, 4, 4, 3), np.uint8), instruction=np.ones((1, 20), np.int32),
+                                   proprio=np.zeros((1, 8), np.float32))
+    got = vla_policy.observation(types.SimpleNamespace(obs=env_obs))
+    assert isinstance(got, vla.Observation) and got.instruction is env_obs.instruction
+
+
+def _imports(path: Path, package: str) -> set[str]:
+    """The modules of `package` that file `path` imports, at any depth of the file."""
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names if a.name.split(".")[0] == package}
+        elif isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == package:
+            out |= {f"{node.module}.{a.name}" if node.module == package else node.module for a in node.names}
+    return out
+
+
+def test_layers_run_one_way():
+    root = Path(__file__).resolve().parents[1]
+    for path in (root / "envs").glob("*.py"):  # the simulator knows nothing of the decode core
+        assert not _imports(path, "heisd_jax"), f"{path.name} imports {_imports(path, 'heisd_jax')}"
+    graph = {}
+    for path in (root / "heisd_jax").rglob("*.py"):
+        name = ".".join(path.relative_to(root).with_suffix("").parts).removesuffix(".__init__")
+        graph[name] = {m for m in _imports(path, "heisd_jax") if m != name}
+
+    def cycle_from(node, seen):
+        for nxt in graph.get(node, ()):
+            if nxt in seen:
+                return seen[seen.index(nxt):] + [nxt]
+            found = cycle_from(nxt, seen + [nxt])
+            if found:
+                return found
+        return None
+    for node in graph:
+        assert cycle_from(node, [node]) is None, " -> ".join(cycle_from(node, [node]))

@@ -23,7 +23,7 @@ def _decode_jaxpr(cfg: vla.VLAConfig, spec=None):
     params = vla.init_params(cfg, jax.random.PRNGKey(0))
     if spec is not None:
         params = {"target": params, "drafter": drafter.init_params(cfg, jax.random.PRNGKey(1))}
-    return jax.make_jaxpr(lambda p, o: vla._decode_action(p, o, cfg, spec))(params, obs(batch=2))
+    return jax.make_jaxpr(lambda p, o: spec_decode._decode_action(p, o, cfg, spec))(params, obs(batch=2))
 
 
 def _products(cfg: vla.VLAConfig, spec=None) -> list[str]:
