@@ -69,7 +69,7 @@ SKIP_SOURCES = ("retrieval", "recent")  # what a skipped step executes: the data
 @dataclasses.dataclass(frozen=True)
 class SkipConfig:
     enabled: bool = True
-    source: str = "retrieval"  # "retrieval": the datastore's top candidate (the paper); "recent": repeat the last action
+    source: str = "retrieval"  # "retrieval": the datastore's top candidate (paper); "recent": repeat the last action
     eps: float = 0.05  # retrieval: nearest-key squared distance under which retrieval is trusted
     r_agree: int = 6  # retrieval: the top `n_agree` candidates agree within this many bins on every token
     n_agree: int = 3

@@ -71,7 +71,8 @@ def table_key(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict
     numerics = ("dtype", "matmul_precision", "unroll")
     model = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in numerics}
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
-            "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll, "batch": int(batch),
+            "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll,
+            "batch": int(batch),
             "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}
@@ -231,7 +232,7 @@ class MissingCostTable(ValueError):
     """No cost table is cached for this device, model, settings and batch size."""
 
 
-def load_cached(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
+def load_cached(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
                 directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print) -> CostTable | None:
     """The cached table for this key, or None (logging why: none, another key, unreadable)."""
     if directory is None:
@@ -257,7 +258,7 @@ def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, bat
                       measure: bool = True) -> CostTable:
     """The cached table for this key; else, with `measure`, a fresh calibration (1-3 min,
     then cached in `directory`; None: never cached), or without it `MissingCostTable`."""
-    table = load_cached(params, cfg, hcfg, batch, directory, log)
+    table = load_cached(cfg, hcfg, batch, directory, log)
     if table is not None:
         return table
     if not measure:

@@ -314,10 +314,6 @@ def with_layout(params, cfg: vla.VLAConfig, per_layer: bool):
     return params, dataclasses.replace(cfg, per_layer=per_layer)
 
 
-def _zero_residual_pad(x: jnp.ndarray, d: int) -> jnp.ndarray:
-    return x.at[..., d:].set(0)
-
-
 def expand_target(params, cfg: vla.VLAConfig, name: str | TargetScale, dtype: str = "bfloat16", seed: int = 0):
     """(params, config) of target (params, cfg) expanded to scale `name` (`SCALES`), its
     parameters in `dtype` on the default device. "shipped" only casts to dtype."""
@@ -329,7 +325,7 @@ def expand_target(params, cfg: vla.VLAConfig, name: str | TargetScale, dtype: st
     out = {"vision": e.vision(params["vision"]),
            **{f"layer{i}": layer for i, layer in enumerate(e.decoder_layers(params["blocks"]))},
            "final_norm": {"scale": e.norm(params["final_norm"]["scale"], new.d_model, e.gain)},
-           "embed": {"embedding": _zero_residual_pad(e.put(params["embed"]["embedding"], (new.vocab, new.d_model)), d)},
+           "embed": {"embedding": e.put(params["embed"]["embedding"], (new.vocab, new.d_model)).at[:, d:].set(0)},
            "head": {"kernel": e.put(params["head"]["kernel"], (new.d_model, new.vocab))},
            "proprio_proj": {"kernel": e.put(params["proprio_proj"]["kernel"], (cfg.proprio_dim, new.d_model),
                                             rest_zero=True),
