@@ -22,9 +22,8 @@ from absl import app, flags, logging
 import jax
 import jax.numpy as jnp
 
-from heisd_jax import checkpoint, drafter, results_io, scale, vla
+from heisd_jax import checkpoint, drafter, results_io, scale, timing, vla
 from heisd_jax.observation import Observation
-from heisd_jax.timing import median_seconds
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -38,7 +37,12 @@ cli.positive_int_list("verify_tokens")
 flags.DEFINE_integer("candidates", 28, "Candidate tokens appended to the prefill (4 actions of 7).")
 flags.DEFINE_enum("layout", "per_layer", ["per_layer", "scan", "unrolled_scan"], "Decoder weights: one array per "
                   "layer (the expansion's), or stacked under a scan (the trained checkpoints'), rolled or unrolled.")
+flags.DEFINE_list("passes", [], "Pass kinds to time (prefill, decode, prefill+block, verifyT, drafterT); "
+                  "empty: all.")
 flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
+flags.DEFINE_string("trace_dir", "", "Trace 3 calls of each pass at the smallest batch size here and list its "
+                    "largest kernels.")
+flags.DEFINE_integer("top", 15, "Kernels listed per pass with --trace_dir.")
 flags.DEFINE_string("out", "", "JSON output path.")
 
 # device kind substring -> (HBM bytes/s, dense bf16 FLOP/s)
@@ -82,6 +86,10 @@ def pass_cost(cfg: vla.VLAConfig, kind: str, b: int, t: int) -> tuple[float, flo
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
+    tokens = sorted({int(x) for x in FLAGS.verify_tokens})
+    valid = ["prefill", "decode", "prefill+block"] + [f"{k}{t}" for k in ("verify", "drafter") for t in tokens]
+    if set(FLAGS.passes) - set(valid):
+        raise app.UsageError(f"--passes: unknown {sorted(set(FLAGS.passes) - set(valid))}; valid: {valid}")
     params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
     try:
         scale.check_fits(cfg0, FLAGS.target_scale, FLAGS.dtype)
@@ -102,7 +110,8 @@ def main(argv):
     decode = jax.jit(lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0])
     dstep = jax.jit(lambda dp, c, e, pos, slot, m: drafter.step(dp, cfg, c, e, e, pos, slot, m)[0])
     rows = []
-    for b in sorted({int(x) for x in FLAGS.batch_sizes}):
+    batches = sorted({int(x) for x in FLAGS.batch_sizes})
+    for b in batches:
         obs = Observation(image=jnp.zeros((b, *cfg.image_shape), jnp.uint8),
                           instruction=jnp.ones((b, cfg.text_len), jnp.int32), proprio=jnp.zeros((b, cfg.proprio_dim)))
         _, _, cache = prefill(params, obs)
@@ -116,14 +125,16 @@ def main(argv):
         calls = {"prefill": (1, lambda: prefill(params, obs)), "decode": (1, lambda: decode(params, full, *causal(1)))}
         tk, dp, m = causal(FLAGS.candidates)
         calls["prefill+block"] = (FLAGS.candidates, lambda: prefill_block(params, obs, tk, dp, m))
-        for t in sorted({int(x) for x in FLAGS.verify_tokens}):
+        for t in tokens:
             calls[f"verify{t}"] = (t, lambda t=t: decode(params, full, *causal(t)))
             emb = jnp.zeros((b, t, cfg.d_model), cfg.dtype)
             pos = cfg.prompt_len + jnp.broadcast_to(jnp.arange(t), (b, t))
             mask = jnp.ones((b, t, cfg.cache_slots), bool)
             calls[f"drafter{t}"] = (t, lambda e=emb, p=pos, mk=mask: dstep(dparams, dcache, e, p, full.length, mk))
         for kind, (t, fn) in calls.items():
-            ms = 1e3 * median_seconds(fn, FLAGS.reps)
+            if FLAGS.passes and kind not in FLAGS.passes:
+                continue
+            ms = 1e3 * timing.median_seconds(fn, FLAGS.reps)
             base = "drafter" if kind.startswith("drafter") else "prefill+block" if kind == "prefill+block" else \
                 "prefill" if kind == "prefill" else "decode"
             nbytes, flops = pass_cost(cfg, base, b, t)
@@ -133,11 +144,18 @@ def main(argv):
                 row.update(roofline_ms=1e3 * max(nbytes / bw, flops / peak), bandwidth_share=row["bandwidth_TBps"] * 1e12 / bw,
                            flops_share=row["TFLOPps"] * 1e12 / peak)
                 row["x_roofline"] = ms / row["roofline_ms"]
+            if FLAGS.trace_dir and b == batches[0]:
+                path = timing.trace_calls(fn, 3, f"{FLAGS.trace_dir}/{kind}_b{b}")
+                row["kernels"] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
             rows.append(row)
             extra = (f"  {row['bandwidth_share']:5.1%} of HBM  {row['flops_share']:5.1%} of bf16 peak  "
                      f"{row['x_roofline']:.2f}x roofline") if bw else ""
             print(f"B={b:<4} {kind:<14} {ms:9.3f} ms  {row['bandwidth_TBps']:6.2f} TB/s  {row['TFLOPps']:7.1f} TFLOP/s"
                   + extra, flush=True)
+            for line, summary in row.get("kernels", {}).items():
+                print(f"    kernels, {line}: {summary['total_ms']:.3f} ms per call, {summary['count']} events")
+                for kname, kms in summary["top"]:
+                    print(f"      {kms:9.3f}  {kname[:120]}")
         if FLAGS.out:
             results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
                                                      "scale": FLAGS.target_scale, "dtype": FLAGS.dtype,

@@ -107,8 +107,8 @@ def write_hlo(fn, args: tuple, path: str | Path) -> Path:
 
 def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
     """Per device timeline of a Perfetto trace (a GPU's process/stream, or the CPU's XLA
-    threads): {"total_ms": summed event time per call, "top": [(event name, ms per call)],
-    largest first}. Event times are summed as recorded (nested events add up)."""
+    threads): {"total_ms": summed event time per call, "count": events per call, "top":
+    [(event name, ms per call)], largest first}. Event times are summed as recorded (nested events add up)."""
     events = json.load(gzip.open(path))["traceEvents"]
     procs, threads = {}, {}
     for e in events:
@@ -117,10 +117,13 @@ def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
         if e.get("ph") == "M" and e.get("name") == "thread_name":
             threads[(e["pid"], e["tid"])] = e["args"]["name"]
     by_line = collections.defaultdict(collections.Counter)
+    counts = collections.Counter()
     for e in events:
         if e.get("ph") != "X" or "dur" not in e:
             continue
         proc, thread = procs.get(e["pid"], ""), threads.get((e["pid"], e.get("tid")), "")
         if proc.startswith("/device:") or thread.startswith("tf_XLA"):
             by_line[f"{proc} | {thread}"][e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
-    return {line: {"total_ms": sum(c.values()), "top": c.most_common(top)} for line, c in by_line.items()}
+            counts[f"{proc} | {thread}"] += 1
+    return {line: {"total_ms": sum(c.values()), "count": counts[line] / calls, "top": c.most_common(top)}
+            for line, c in by_line.items()}

@@ -27,6 +27,7 @@ def test_kernel_summary_of_a_traced_call(tmp_path):
     assert per_call.keys() == whole.keys()
     for name, line in whole.items():
         assert per_call[name]["total_ms"] == pytest.approx(line["total_ms"] / 3)
+        assert line["count"] >= len(line["top"]) and per_call[name]["count"] == pytest.approx(line["count"] / 3)
         assert [k for k, _ in per_call[name]["top"]] == [k for k, _ in line["top"]]
         np.testing.assert_allclose([ms for _, ms in per_call[name]["top"]], [ms / 3 for _, ms in line["top"]])
 
