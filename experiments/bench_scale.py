@@ -6,7 +6,8 @@
 Per batch size and pass kind (the prefill: vision tower + the prompt through the decoder;
 one cached token; a verification pass of T tokens under a causal mask; the prefill with T
 candidate tokens appended; one drafter pass over T tokens), the median wall time of a jitted
-call, the bytes it must read (weights it touches, and the KV cache it attends over) and the
+call and (--in_graph) its marginal cost inside a compiled loop, which a decode loop pays per
+pass without the call's dispatch, the bytes it must read (weights it touches, and the KV cache it attends over) and the
 FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
 device's peak (`PEAKS`; H100 SXM and H200: bf16 dense 989 TFLOP/s, HBM 3.35 / 4.8 TB/s).
 Inputs are zeros and the cache is full length: costs do not depend on values.
@@ -40,6 +41,8 @@ flags.DEFINE_enum("layout", "per_layer", ["per_layer", "scan", "unrolled_scan"],
 flags.DEFINE_list("passes", [], "Pass kinds to time (prefill, decode, prefill+block, verifyT, drafterT); "
                   "empty: all.")
 flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
+flags.DEFINE_bool("in_graph", True, "Also time each pass inside a compiled loop (no per-call dispatch: what a "
+                  "decode loop pays per pass; `heisd_jax.timing.in_graph_ms`).")
 flags.DEFINE_string("trace_dir", "", "Trace 3 calls of each pass at the smallest batch size here and list its "
                     "largest kernels.")
 flags.DEFINE_integer("top", 15, "Kernels listed per pass with --trace_dir.")
@@ -83,6 +86,11 @@ def pass_cost(cfg: vla.VLAConfig, kind: str, b: int, t: int) -> tuple[float, flo
     return dec_w * byte + kv, flops
 
 
+def _observation(cfg: vla.VLAConfig, b: int) -> Observation:
+    return Observation(image=jnp.zeros((b, *cfg.image_shape), jnp.uint8),
+                       instruction=jnp.ones((b, cfg.text_len), jnp.int32), proprio=jnp.zeros((b, cfg.proprio_dim)))
+
+
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -105,16 +113,18 @@ def main(argv):
     print(f"{FLAGS.target_scale} {FLAGS.dtype} on {jax.devices()[0].device_kind}: decoder "
           f"{counts['decoder'] / 1e9:.2f}B, vision {counts['vision'] / 1e9:.2f}B parameters; prompt {cfg.prompt_len}, "
           f"cache {cfg.cache_slots} slots", flush=True)
-    prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
-    prefill_block = jax.jit(lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0])
-    decode = jax.jit(lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0])
-    dstep = jax.jit(lambda dp, c, e, pos, slot, m: drafter.step(dp, cfg, c, e, e, pos, slot, m)[0])
+    # the pure pieces (in-graph timing loops them), and their jitted calls
+    pieces = {"prefill": lambda p, o: vla.prefill(p, cfg, o)[0],
+              "prefill+block": lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0],
+              "decode": lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0],
+              "drafter": lambda dp, c, e, pos, slot, m: drafter.step(dp, cfg, c, e, e, pos, slot, m)[0]}
+    jitted = {k: jax.jit(f) for k, f in pieces.items()}
+    prefill_cache = jax.jit(lambda p, o: vla.prefill(p, cfg, o)[2])
     rows = []
     batches = sorted({int(x) for x in FLAGS.batch_sizes})
     for b in batches:
-        obs = Observation(image=jnp.zeros((b, *cfg.image_shape), jnp.uint8),
-                          instruction=jnp.ones((b, cfg.text_len), jnp.int32), proprio=jnp.zeros((b, cfg.proprio_dim)))
-        _, _, cache = prefill(params, obs)
+        obs = _observation(cfg, b)
+        cache = prefill_cache(params, obs)
         full = cache.replace(key_mask=jnp.ones_like(cache.key_mask), length=jnp.full((b,), cfg.prompt_len, jnp.int32))
         dcache = drafter.init_cache(cfg, b).replace(length=full.length, key_mask=full.key_mask)
 
@@ -122,34 +132,39 @@ def main(argv):
             tk = jnp.full((b, t), cfg.first_action_id, jnp.int32)
             return tk, jnp.broadcast_to(jnp.arange(t), (b, t)), jnp.broadcast_to(vla.causal_mask(t, t), (b, t, t))
 
-        calls = {"prefill": (1, lambda: prefill(params, obs)), "decode": (1, lambda: decode(params, full, *causal(1)))}
-        tk, dp, m = causal(FLAGS.candidates)
-        calls["prefill+block"] = (FLAGS.candidates, lambda: prefill_block(params, obs, tk, dp, m))
+        # pass kind -> (new tokens, piece, its arguments)
+        calls = {"prefill": (1, "prefill", (params, obs)), "decode": (1, "decode", (params, full, *causal(1))),
+                 "prefill+block": (FLAGS.candidates, "prefill+block", (params, obs, *causal(FLAGS.candidates)))}
         for t in tokens:
-            calls[f"verify{t}"] = (t, lambda t=t: decode(params, full, *causal(t)))
+            calls[f"verify{t}"] = (t, "decode", (params, full, *causal(t)))
             emb = jnp.zeros((b, t, cfg.d_model), cfg.dtype)
             pos = cfg.prompt_len + jnp.broadcast_to(jnp.arange(t), (b, t))
-            mask = jnp.ones((b, t, cfg.cache_slots), bool)
-            calls[f"drafter{t}"] = (t, lambda e=emb, p=pos, mk=mask: dstep(dparams, dcache, e, p, full.length, mk))
-        for kind, (t, fn) in calls.items():
+            calls[f"drafter{t}"] = (t, "drafter", (dparams, dcache, emb, pos, full.length,
+                                                   jnp.ones((b, t, cfg.cache_slots), bool)))
+        for kind, (t, piece, args) in calls.items():
             if FLAGS.passes and kind not in FLAGS.passes:
                 continue
+            fn = lambda piece=piece, args=args: jitted[piece](*args)  # noqa: E731
             ms = 1e3 * timing.median_seconds(fn, FLAGS.reps)
-            base = "drafter" if kind.startswith("drafter") else "prefill+block" if kind == "prefill+block" else \
-                "prefill" if kind == "prefill" else "decode"
-            nbytes, flops = pass_cost(cfg, base, b, t)
+            nbytes, flops = pass_cost(cfg, piece, b, t)
             row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "bytes": nbytes, "flops": flops,
                    "bandwidth_TBps": nbytes / ms / 1e9, "TFLOPps": flops / ms / 1e9}
+            if FLAGS.in_graph:
+                row["loop_ms"] = timing.in_graph_ms(pieces[piece], args, n=(1, 4), reps=3)
             if bw:
                 row.update(roofline_ms=1e3 * max(nbytes / bw, flops / peak), bandwidth_share=row["bandwidth_TBps"] * 1e12 / bw,
                            flops_share=row["TFLOPps"] * 1e12 / peak)
                 row["x_roofline"] = ms / row["roofline_ms"]
+                if "loop_ms" in row:
+                    row["loop_x_roofline"] = row["loop_ms"] / row["roofline_ms"]
             if FLAGS.trace_dir and b == batches[0]:
                 path = timing.trace_calls(fn, 3, f"{FLAGS.trace_dir}/{kind}_b{b}")
                 row["kernels"] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
             rows.append(row)
             extra = (f"  {row['bandwidth_share']:5.1%} of HBM  {row['flops_share']:5.1%} of bf16 peak  "
                      f"{row['x_roofline']:.2f}x roofline") if bw else ""
+            if "loop_ms" in row:
+                extra += f"; in a loop {row['loop_ms']:.3f} ms" + (f" ({row['loop_x_roofline']:.2f}x)" if bw else "")
             print(f"B={b:<4} {kind:<14} {ms:9.3f} ms  {row['bandwidth_TBps']:6.2f} TB/s  {row['TFLOPps']:7.1f} TFLOP/s"
                   + extra, flush=True)
             for line, summary in row.get("kernels", {}).items():
