@@ -433,7 +433,8 @@ def _plan(env, policy, cfg, todo, seed, devices, rollouts=None, store=None):
 
 def _decode_means(recs: list[dict]) -> dict:
     """Decoding statistics of a set of episodes: every decode total divided by the number of
-    actions taken (e.g. target passes per action), and target passes per episode."""
+    actions taken (e.g. target passes per action), target passes per episode, and the episodes
+    that decoded an invalid observation."""
     actions = sum(r["steps"] for r in recs)
     keys = set().union(*(r.get("decode", {}) for r in recs))
     out = {f"{k}_per_action": sum(r.get("decode", {}).get(k, 0.0) for r in recs) / max(actions, 1)
@@ -443,6 +444,8 @@ def _decode_means(recs: list[dict]) -> dict:
     if "tokens" in keys and "target_passes" in keys:  # acceptance length: tokens per target pass
         passes = sum(r["decode"].get("target_passes", 0.0) for r in recs)
         out["tokens_per_target_pass"] = sum(r["decode"].get("tokens", 0.0) for r in recs) / max(passes, 1e-9)
+    if "invalid" in keys:  # episodes that met an observation the model cannot read (vla.mark_invalid)
+        out["invalid_episodes"] = sum(r["decode"].get("invalid", 0.0) > 0 for r in recs)
     return out
 
 

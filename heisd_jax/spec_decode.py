@@ -309,8 +309,11 @@ def decode_action(params, cfg: vla.VLAConfig, obs: vla.Observation,
     The observation is checked first (`vla.check_observation`, outside jit). Returns action
     token ids [B, 7] int32 in [cfg.first_action_id, cfg.vocab_size) (bin = id -
     first_action_id; `ActionTokenizer.decode` maps ids to actions) and per-row statistics,
-    each [B] float32: target_passes, tokens (= 7), and for speculative decoding also
-    drafter_passes and rounds. Compiles once per (cfg, spec, batch shape)."""
+    each [B] float32: target_passes, tokens (= 7), invalid, and for speculative decoding also
+    drafter_passes and rounds. Under an outer jit the value checks cannot raise: a row whose
+    proprio is not finite or whose instruction ids are out of range gets tokens
+    `tokenizer.INVALID_ID` (the zero action) and invalid = 1 (`vla.mark_invalid`), the other
+    rows are unchanged. Compiles once per (cfg, spec, batch shape)."""
     vla.check_observation(cfg, obs)
     if spec is not None:
         spec.check_fits(cfg)
@@ -319,8 +322,10 @@ def decode_action(params, cfg: vla.VLAConfig, obs: vla.Observation,
 
 def _decode_action(params, obs: vla.Observation, cfg: vla.VLAConfig, spec):
     if spec is None:
-        return vla.ar_action(params, cfg, obs)
-    return spec_decode(params["target"], params["drafter"], cfg, spec, obs)
+        tokens, stats = vla.ar_action(params, cfg, obs)
+    else:
+        tokens, stats = spec_decode(params["target"], params["drafter"], cfg, spec, obs)
+    return vla.mark_invalid(cfg, obs, tokens, stats)
 
 
 _decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))

@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 N_BINS = 256
+INVALID_ID = -1  # the token id of a row whose observation was invalid (`vla.mark_invalid`)
 ACTION_DIM = 7
 NORMALIZE_MASK = np.array([True] * 6 + [False])  # the gripper is not renormalised
 
@@ -73,8 +74,11 @@ class ActionTokenizer:
         return self.to_bins(action) + self.first_action_id
 
     def decode(self, token_ids):
-        """[..., 7] vocabulary ids -> [..., 7] actions (ids outside the action range clip)."""
-        return self.from_bins(jnp.clip(token_ids - self.first_action_id, 0, N_BINS - 1))
+        """[..., 7] vocabulary ids -> [..., 7] actions (ids outside the action range clip).
+        `INVALID_ID` decodes to 0.0, the zero action: no arm motion, the gripper half open,
+        rather than the full-speed move of a clipped id."""
+        actions = self.from_bins(jnp.clip(token_ids - self.first_action_id, 0, N_BINS - 1))
+        return jnp.where(token_ids == INVALID_ID, 0.0, actions)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -39,7 +39,7 @@ from flax import struct
 
 from heisd_jax import rounded_products
 from heisd_jax.observation import PAD_ID, TEXT_LEN, TEXT_VOCAB, Observation
-from heisd_jax.tokenizer import ACTION_DIM, N_BINS
+from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
 NEG_INF = -1e9
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
@@ -234,6 +234,26 @@ def check_observation(cfg: VLAConfig, obs: Observation) -> int:
             raise ValueError(f"observation.instruction has token ids in [{ids.min()}, {ids.max()}], "
                              f"expected [0, {cfg.text_vocab}) (text_vocab)")
     return batch["image"]
+
+
+def observation_valid(cfg: VLAConfig, obs: Observation) -> jnp.ndarray:
+    """[B] bool, jit-safe: the row's proprio is finite and its instruction ids lie in
+    [0, text_vocab). The value checks of `check_observation`, which cannot raise under jit:
+    a row that fails them decodes to a meaningless action (NaN logits argmax to bin 0, a
+    full-speed move on every axis), so `mark_invalid` makes its result explicit instead."""
+    finite = jnp.isfinite(obs.proprio).all(-1)
+    ids_ok = ((obs.instruction >= 0) & (obs.instruction < cfg.text_vocab)).all(-1)
+    return finite & ids_ok
+
+
+def mark_invalid(cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, stats: dict) -> tuple[jnp.ndarray, dict]:
+    """A decoding's (tokens [B, 7], per-row stats) with the rows of an invalid observation
+    (`observation_valid`) made explicit: their tokens are `tokenizer.INVALID_ID` (which
+    `ActionTokenizer.decode` turns into the zero action) and `stats["invalid"]` is 1.0 there,
+    0.0 elsewhere (an evaluator sums it per episode). Valid rows are unchanged."""
+    valid = observation_valid(cfg, obs)
+    return (jnp.where(valid[:, None], tokens, INVALID_ID),
+            {**stats, "invalid": (~valid).astype(jnp.float32)})
 
 
 def init_cache(cfg: VLAConfig, batch: int) -> KVCache:

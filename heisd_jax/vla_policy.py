@@ -17,7 +17,7 @@ import jax.numpy as jnp
 from envs.env import EnvState
 from envs.rollout import Policy, Stats
 from heisd_jax import vla
-from heisd_jax.tokenizer import ActionTokenizer
+from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
 DEFAULT_DRAFTER = Path(__file__).resolve().parents[1] / "checkpoints" / "drafter"
@@ -35,7 +35,8 @@ def observation(states: EnvState) -> vla.Observation:
 def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, decode: DecodeFn,
                     **meta) -> Policy:
     def act(params, states, pstate, keys):
-        tokens, stats = decode(params, cfg, observation(states))
+        obs = observation(states)
+        tokens, stats = vla.mark_invalid(cfg, obs, *decode(params, cfg, obs))
         return tok.decode(tokens), pstate, stats
 
     return Policy(name=name, init=lambda params, states: (), act=act, params=params, meta=dict(cfg=cfg, tok=tok, **meta))
@@ -70,9 +71,11 @@ def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, h
     def act(params, states, pstate, keys):
         kin = hybrid.Kinematics(lin_vel=states.kin.lin_vel, ang_vel=states.kin.ang_vel, lin_acc=states.kin.lin_acc,
                                 gripper_vel=states.kin.gripper_vel)
-        actions, _, pstate, stats = hybrid.step(params, cfg, hcfg, key_spec, tok, pstate, observation(states), kin,
-                                                gidx[states.info.task_id])
-        return actions, pstate, stats
+        obs = observation(states)
+        actions, tokens, pstate, stats = hybrid.step(params, cfg, hcfg, key_spec, tok, pstate, obs, kin,
+                                                     gidx[states.info.task_id])
+        tokens, stats = vla.mark_invalid(cfg, obs, tokens, stats)
+        return jnp.where((tokens == INVALID_ID)[:, :1], tok.decode(tokens), actions), pstate, stats
 
     return Policy(name=name, init=init, act=act, params=params,
                   meta=dict(cfg=cfg, tok=tok, hcfg=hcfg, spec=hcfg.spec, key_spec=key_spec))

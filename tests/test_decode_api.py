@@ -13,6 +13,7 @@ import pytest
 import heisd_jax
 import tiny_models
 from heisd_jax import spec_decode, vla
+from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = tiny_models.CFG  # image [16, 16, 3], text_len 20, text_vocab 36, proprio 8
@@ -49,7 +50,8 @@ def test_decode_action_equals_ar_and_strict_speculative_decoding(tiny_hybrid):
     params, obs, ar_tokens = tiny_hybrid
     tokens, stats = heisd_jax.decode_action(params["target"], CFG, obs)
     np.testing.assert_array_equal(tokens, ar_tokens)
-    assert tokens.dtype == jnp.int32 and set(stats) == {"target_passes", "tokens"}
+    assert tokens.dtype == jnp.int32 and set(stats) == {"target_passes", "tokens", "invalid"}
+    assert not np.asarray(stats["invalid"]).any()
     assert stats["target_passes"].shape == (obs.image.shape[0],)
     spec = spec_decode.SpecConfig(top_k=4, depth=3, total_tokens=8)
     sd, sd_stats = heisd_jax.decode_action(params, CFG, obs, spec=spec)
@@ -102,3 +104,30 @@ def test_value_checks_skip_tracers_and_shape_checks_do_not():
     with pytest.raises(ValueError, match="observation.proprio has shape"):
         jax.jit(lambda o: vla.check_observation(CFG, o))(_obs(proprio=np.zeros((2, 9), np.float32)))
     assert vla.check_observation(CFG, _obs()) == 2
+
+
+def test_invalid_rows_under_jit_decode_to_the_zero_action_and_are_counted(tiny_hybrid):
+    """Under an outer jit the value checks cannot raise: a row with NaN proprio or an
+    out-of-vocabulary instruction id gets INVALID_ID tokens (the zero action) and
+    stats["invalid"] = 1; the other rows decode as they would alone."""
+    params, obs, ar_tokens = tiny_hybrid
+    b = obs.image.shape[0]
+    assert b >= 3
+    proprio = np.array(obs.proprio).copy()
+    proprio[0, 2] = np.nan
+    instruction = np.array(obs.instruction).copy()
+    instruction[1, 3] = CFG.text_vocab
+    bad = obs.replace(proprio=jnp.asarray(proprio), instruction=jnp.asarray(instruction))
+    spec = spec_decode.SpecConfig(top_k=4, depth=3, total_tokens=8)
+    for p, s in ((params["target"], None), (params, spec)):
+        tokens, stats = jax.jit(lambda o, p=p, s=s: heisd_jax.decode_action(p, CFG, o, spec=s))(bad)
+        tokens = np.asarray(tokens)
+        np.testing.assert_array_equal(tokens[:2], np.full((2, 7), INVALID_ID))
+        np.testing.assert_array_equal(tokens[2:], np.asarray(ar_tokens)[2:])
+        np.testing.assert_array_equal(stats["invalid"], [1.0, 1.0] + [0.0] * (b - 2))
+    tok = ActionTokenizer(q01=(-0.5,) * 7, q99=(0.5,) * 7, vocab_size=CFG.vocab_size)
+    actions = np.asarray(tok.decode(jnp.asarray(tokens)))
+    np.testing.assert_array_equal(actions[:2], 0.0)
+    np.testing.assert_array_equal(actions[2:], np.asarray(tok.decode(ar_tokens))[2:])
+    with pytest.raises(ValueError, match="non-finite"):  # outside jit the same input is refused
+        heisd_jax.decode_action(params["target"], CFG, bad)
