@@ -9,6 +9,12 @@ OpenVLA's plain cross-entropy.
 `make_train_step` returns a jitted pure step (state, table, key) -> (state, metrics) that
 draws its own minibatch from the device-resident step table. AdamW with linear warm-up and
 cosine decay (optax).
+
+Data parallelism (`mesh`, a one-axis `jax.sharding.Mesh`): the state and the step table are
+replicated on every device, the minibatch is split over the mesh after it is drawn (a
+sharding constraint: each device gathers and differentiates its own rows), and XLA's SPMD
+partitioner inserts the gradient all-reduce. The step computes the same function as on one
+device (the same rows, the same mean), up to the order of the gradient's summation.
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import optax
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from heisd_jax import data, vla
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
@@ -89,20 +96,40 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
                   "bin_err": jnp.mean(jnp.abs(greedy - target), axis=0)}
 
 
-def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionTokenizer):
+def _data_parallel(step, mesh: Mesh | None, batch_size: int):
+    """`step` jitted; with a mesh, its inputs and outputs replicated over the mesh (the
+    minibatch inside is split by `_split`)."""
+    if mesh is None:
+        return jax.jit(step)
+    if batch_size % mesh.size:
+        raise ValueError(f"batch_size {batch_size} is not divisible by the {mesh.size} devices it is split over; "
+                         f"use a multiple of {mesh.size}")
+    whole = NamedSharding(mesh, P())
+    return jax.jit(step, in_shardings=whole, out_shardings=whole)
+
+
+def _split(mesh: Mesh | None, batch):
+    """The minibatch's rows split over the mesh's one axis (identity without a mesh)."""
+    if mesh is None:
+        return batch
+    return jax.lax.with_sharding_constraint(batch, NamedSharding(mesh, P(mesh.axis_names[0])))
+
+
+def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionTokenizer, mesh: Mesh | None = None):
+    """Jitted (state, table, key) -> (state, metrics); over the devices of `mesh` if given
+    (data parallel; the state and table then live replicated on the mesh)."""
     opt = optimizer(cfg)
 
-    @jax.jit
     def train_step(state: TrainState, table: data.StepTable, key: jax.Array):
-        obs, tokens = data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok, cfg.image_shift,
-                                        model_cfg.n_views)
+        obs, tokens = _split(mesh, data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok,
+                                                     cfg.image_shift, model_cfg.n_views))
         (loss, metrics), grads = jax.value_and_grad(action_loss, has_aux=True)(
             state.params, model_cfg, obs, tokens, cfg.label_sigma_bins)
         updates, opt_state = opt.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), {"loss": loss, **metrics}
 
-    return train_step
+    return _data_parallel(train_step, mesh, cfg.batch_size)
 
 
 def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, label_sigma_bins: float = 0.0):
@@ -135,25 +162,26 @@ def init_drafter_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
 
 
-def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig):
+def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | None = None):
     """Jitted (state, tparams, table, tokens, key) -> (state, metrics): EAGLE's loss on a
-    random minibatch of steps teacher-forced on the target's greedy tokens."""
+    random minibatch of steps teacher-forced on the target's greedy tokens; data parallel
+    over `mesh` as `make_train_step`."""
     from heisd_jax import drafter  # noqa: PLC0415
     opt = optimizer(cfg)
 
-    @jax.jit
     def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
         k_idx, k_shift = jax.random.split(jax.random.fold_in(key, state.step))
         i = jax.random.randint(k_idx, (cfg.batch_size,), 0, table.size)
         obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift, model_cfg.n_views),
                               instruction=table.instruction[i], proprio=table.proprio[i])
+        obs, labels = _split(mesh, (obs, tokens[i]))
         (loss, metrics), grads = jax.value_and_grad(drafter.loss, has_aux=True)(state.params, tparams, model_cfg, obs,
-                                                                                tokens[i])
+                                                                                labels)
         updates, opt_state = opt.update(grads, state.opt_state, state.params)
         return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
                           opt_state=opt_state), {"loss": loss, **metrics}
 
-    return step
+    return _data_parallel(step, mesh, cfg.batch_size)
 
 
 def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
