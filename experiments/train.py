@@ -9,6 +9,9 @@ training episodes are pooled; the validation steps are the held-out episodes of 
 The model's image size and number of camera views are read from the data. --init starts
 from a policy checkpoint's parameters and tokenizer (fresh optimizer and schedule).
 
+--devices=N trains data parallel over N local devices (0: all): the state and the step
+table are replicated on each, every minibatch is split over them (`heisd_jax.train`).
+
 Training state is checkpointed with orbax under --out/state every --ckpt_every steps; a
 rerun with the same --out resumes from the latest one. Loss and per-dimension token
 accuracy are printed and appended to --out/log.jsonl.
@@ -27,7 +30,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos, language
-from heisd_jax import checkpoint, data, train, vla, vla_policy
+from heisd_jax import checkpoint, data, sharding, train, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
 
@@ -56,6 +59,8 @@ flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoin
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
+flags.DEFINE_integer("devices", 1, "Local devices to train over, data parallel (0: all of them); --batch_size must "
+                     "be a multiple.")
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
@@ -102,6 +107,22 @@ def _tables():
     return host, val_host, h, w // h
 
 
+def _mesh():
+    """The mesh of --devices local devices, or None for one device (plain jit)."""
+    n = FLAGS.devices or jax.local_device_count()
+    return sharding.env_mesh(jax.local_devices()[:n]) if n > 1 else None
+
+
+def _place(mesh, tree):
+    """`tree` on the device (one device) or replicated over the mesh."""
+    return jax.device_put(tree) if mesh is None else sharding.replicate(mesh, tree)
+
+
+def _first(tree):
+    """A replicated tree's copy on the first device (for the single-device evaluation)."""
+    return jax.device_put(tree, jax.local_devices()[0])
+
+
 def train_vla(out: Path, cfg: train.TrainConfig):
     host, val_host, image_size, n_views = _tables()
     init = None
@@ -133,14 +154,15 @@ def train_vla(out: Path, cfg: train.TrainConfig):
         print(f"resumed from step {int(state.step)}")
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens")
-    table, val_table = jax.device_put(host), jax.device_put(val_host)
+    mesh = _mesh()
+    table, val_table, state = _place(mesh, host), jax.device_put(val_host), _place(mesh, state)
     run_cfg = dataclasses.replace(model_cfg, dtype=FLAGS.compute_dtype)
-    step = train.make_train_step(run_cfg, cfg, tok)
+    step = train.make_train_step(run_cfg, cfg, tok, mesh)
     eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
 
     def record(state, m, s):
-        vloss, vm = eval_fn(state.params, val_table, jax.random.fold_in(eval_key, s))
+        vloss, vm = eval_fn(_first(state.params), val_table, jax.random.fold_in(eval_key, s))
         return {"loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()), "val_loss": float(vloss),
                 "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
                 "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]]}
@@ -174,16 +196,18 @@ def train_drafter(out: Path, cfg: train.TrainConfig):
             raise app.UsageError(f"{out} holds a drafter run for another target; use another --out")
         print(f"resumed from step {int(state.step)}")
     print(f"drafter {sum(x.size for x in jax.tree.leaves(state.params)) / 1e6:.2f}M parameters, target {fp}")
-    step = train.make_drafter_step(model_cfg, cfg)
+    mesh = _mesh()
+    step = train.make_drafter_step(model_cfg, cfg, mesh)
     eval_fn = train.make_drafter_eval(model_cfg, min(1024, val_table.size))
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
+    state, table_m, tparams_m, tokens_m = (_place(mesh, x) for x in (state, table, tparams, tokens))
 
     def record(state, m, s):
-        vloss, vm = eval_fn(state.params, tparams, val_table, val_tokens, jax.random.fold_in(eval_key, s))
+        vloss, vm = eval_fn(_first(state.params), tparams, val_table, val_tokens, jax.random.fold_in(eval_key, s))
         return {"loss": float(m["loss"]), "reg": float(m["reg"]), "ce": float(m["ce"]), "val_loss": float(vloss),
                 "val_top1": [round(float(a), 4) for a in vm["top1"]]}
 
-    state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, tparams, table, tokens, k), record)
+    state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, tparams_m, table_m, tokens_m, k), record)
     if FLAGS.export:
         checkpoint.save_drafter(FLAGS.export, state.params, model_cfg, tparams, extra={"train": meta["train"]})
         print(f"drafter checkpoint: {FLAGS.export}")
@@ -200,6 +224,13 @@ def main(argv):
             path = getattr(FLAGS, name)
             if path and not Path(path).is_dir():
                 raise FileNotFoundError(f"--{name} {path}: no checkpoint there")
+        available = jax.local_device_count()
+        if not 0 <= FLAGS.devices <= available:
+            raise ValueError(f"--devices={FLAGS.devices}: {available} local devices are available (0: all of them)")
+        n = FLAGS.devices or available
+        if FLAGS.batch_size % n:
+            raise ValueError(f"--batch_size={FLAGS.batch_size} cannot be split evenly over {n} devices; use a "
+                             f"multiple of {n}")
         cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
                                 image_shift=FLAGS.image_shift)
