@@ -407,7 +407,8 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         raise ValueError(f"the state holds {state.recent.shape[1]} recent actions, the config wants "
                          f"{hcfg.recent_candidates}: make it with init_state(batch, key_spec, hcfg)")
     if hcfg.skip.source == "recent":  # the last action first: a skipped row executes it again
-        skip = rules.may_repeat(hcfg.skip, in_regime, state.recent_valid[:, 0], state.repeats, state.skips)
+        has_last = jnp.any(state.recent_valid[:, :1], 1)  # False without recent candidates (skip is off then)
+        skip = rules.may_repeat(hcfg.skip, in_regime, has_last, state.repeats, state.skips)
         cand = jnp.concatenate([state.recent, cand], 1)
         valid = jnp.concatenate([state.recent_valid, valid], 1)
     else:
