@@ -8,7 +8,7 @@ Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, -
 --steps, --checkpoint), then reports, over steps where the episode runs:
   - per dimension, the bin distance between consecutive actions;
   - how often the previous action, as a draft, would be accepted whole by HeiSD's
-    sequence-wise rule (`acceptance.seq_relaxed_length`, default r_max / r_seq) against the
+    sequence-wise rule (`acceptance.seq_relaxed_length`, the paper's r_max 15 / r_seq 42) against the
     action the target emitted (an approximation: in a real verification the target's tokens
     are conditioned on the draft's prefix, not on its own);
   - that share after k consecutive whole repeats (are repeats bursty?);
@@ -30,7 +30,7 @@ import numpy as np
 from envs import language, tasks as tasks_lib
 from envs.env import TabletopEnv
 from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint, out
-from heisd_jax import acceptance, checkpoint, methods, results_io
+from heisd_jax import acceptance, checkpoint, hybrid, methods, results_io
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -38,7 +38,7 @@ FLAGS = flags.FLAGS
 
 def whole(draft: np.ndarray, target: np.ndarray) -> np.ndarray:
     """[...] the draft action [..., 7] (bins) accepted whole against the target's [..., 7]."""
-    cfg = acceptance.SeqRelaxedConfig()
+    cfg = hybrid.PAPER.seq
     return np.asarray(acceptance.seq_relaxed_length(jnp.asarray(draft), jnp.asarray(target), cfg)) == 7
 
 

@@ -122,7 +122,7 @@ def prefill_policy(env: TabletopEnv):
     """The target's prefill alone (its greedy first token repeated): the floor of any method
     that prefills every action."""
     params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-    cfg, params = methods.in_numerics(cfg, methods.ARSettings(**common_settings()), params)
+    cfg, params = methods.in_numerics(cfg, methods.config("ar", common_settings()).numerics, params)
 
     def decode(params, cfg, obs):
         logits, _, _ = vla.prefill(params, cfg, obs)

@@ -38,7 +38,7 @@ flags.DEFINE_integer("steps", 60, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 200, "States replayed at batch 1 (spread over the recording).")
 flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
 flags.DEFINE_enum("matmul_precision", vla.VLAConfig.matmul_precision, list(vla.MATMUL_PRECISIONS),
-                  "The target's " + methods.ARSettings.__dataclass_fields__["matmul_precision"].metadata["help"])
+                  "The target's " + methods.settings("ar")["matmul_precision"].help)
 
 
 def main(argv):

@@ -77,7 +77,7 @@ def main(argv):
         raise app.UsageError(f"{e} (--batch_sizes like 256,1024; --tree like 4x2x8)") from e
     tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     dp = checkpoint.load_drafter(FLAGS.drafter, cfg, tp)[0]
-    hcfg = hybrid.HybridConfig()
+    hcfg = hybrid.PAPER  # 4 retrieved candidates verified in the prefill
     hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, tree))
     hcfg.check_fits(cfg)
     params = {"target": tp, "drafter": dp}

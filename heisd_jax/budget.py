@@ -76,7 +76,7 @@ def parse_trees(text: str) -> tuple[tuple[int, int, int], ...]:
 
 @dataclasses.dataclass(frozen=True)
 class BudgetConfig:
-    mode: str = "fixed"  # "auto": choose per step; "fixed": the HybridConfig's one tree, always
+    mode: str = "auto"  # "auto": choose per step; "fixed": the HybridConfig's one tree, always
     trees: tuple[tuple[int, int, int], ...] = DEFAULT_TREES
     decay: float = 0.1  # weight of a new observation in the running estimate of rounds
     retry_share: float = 0.002  # per option, at most this share of the time goes to re-trying it

@@ -62,13 +62,16 @@ def _check(name, value, valid):
 
 @dataclasses.dataclass(frozen=True)
 class HybridConfig:
+    """The hybrid decode's configuration. Its defaults are the shipped `heisd` method's (the
+    `heisd_jax.methods` record runs this config when given no settings; a datastore's
+    calibration fills the metric scales, boundary and skip_eps); `PAPER` is the paper's."""
     spec: spec_decode.SpecConfig = spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=9)  # drafter SD
     mode: str = "hybrid"
     acceptance: str = "seq_relaxed"  # rule for retrieval drafts
     relax_bins: int = 9  # token_relaxed on retrieval drafts
     seq: rules.SeqRelaxedConfig = rules.SeqRelaxedConfig()
     n_candidates: int = 4  # retrieved from the datastore
-    recent_candidates: int = 0  # the env's own last executed actions, newest first (our design)
+    recent_candidates: int = 4  # the env's own last executed actions, newest first (our design)
     max_dist: float = float("inf")  # candidates with a squared key distance above this are invalid
     verify: str = "prefill"
     continuation: str = "drafter"  # "ar": single-token target passes, no drafter at all (budget option "ar+retrieval")
@@ -128,6 +131,13 @@ class HybridConfig:
             raise ValueError(f"{self.n_candidates} retrieved + {self.recent_candidates} recent candidates need {need} "
                              f"cache slots, the model has {cfg.cache_slots}; n_candidates + recent_candidates must "
                              f"be <= {(cfg.cache_slots - cfg.prompt_len) // (ACTION_DIM - 1)}")
+
+
+# The paper's HeiSD: sequence-wise acceptance at r_max 15 / r_seq 42, verify-skip on the
+# datastore's top candidate, no recent-action candidates, one fixed draft tree.
+PAPER = HybridConfig(seq=rules.SeqRelaxedConfig(r_max=15, r_seq=42), recent_candidates=0,
+                     skip=rules.SkipConfig(source="retrieval", n_confirm=2, k_skip=3),
+                     budget=budget_lib.BudgetConfig(mode="fixed"))
 
 
 def candidate_block(cand: jnp.ndarray):
@@ -407,7 +417,8 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
         raise ValueError(f"the state holds {state.recent.shape[1]} recent actions, the config wants "
                          f"{hcfg.recent_candidates}: make it with init_state(batch, key_spec, hcfg)")
     if hcfg.skip.source == "recent":  # the last action first: a skipped row executes it again
-        skip = rules.may_repeat(hcfg.skip, in_regime, state.recent_valid[:, 0], state.repeats, state.skips)
+        has_last = jnp.any(state.recent_valid[:, :1], 1)  # False without recent candidates (skip is off then)
+        skip = rules.may_repeat(hcfg.skip, in_regime, has_last, state.repeats, state.skips)
         cand = jnp.concatenate([state.recent, cand], 1)
         valid = jnp.concatenate([state.recent_valid, valid], 1)
     else:

@@ -1,10 +1,15 @@
 """The decoding methods, one record each (`Method`), registered by name so the evaluator,
 sweeps and benchmarks can say `--method=NAME`.
 
-A method's record says what it is (`name`), its settings (a dataclass: field names are the
-entry points' flags and the sweep keys, field defaults are the method's defaults, written
-once here), what it loads (target checkpoint, drafter, datastore), whether it looks at the
-camera image, and whether it chooses a draft budget from measured costs. `make_policy`
+A method's record says what it is (`name`), its default configuration (`default`: the
+runtime config it runs with when given no settings; a VLA method's is a `Config`, its
+numerics and its decoder's config), what it loads (target checkpoint, drafter, datastore),
+whether it looks at the camera image, and whether it chooses a draft budget from measured
+costs. Its settings, the entry points' flags and the sweep keys (`heisd:budget=fixed`), are
+the fields of its config that `SETTINGS` names: their types and defaults are the config's,
+and given settings replace those fields (`config`), over a datastore's calibration for the
+hybrid methods, with what they imply (`_implied`: strict acceptance is lossless unless asked
+otherwise, verify-skip needs its source's candidates). `make_policy`
 builds its `envs.rollout.Policy` for an env: the scripted expert (an upper bound, no model)
 or a VLA decoding method over the shipped (or given) checkpoints.
 """
@@ -13,9 +18,10 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import functools
 import typing
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -51,160 +57,226 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | No
     return (cfg, *(jax.tree.map(cast, p) for p in params))
 
 
-def in_numerics(cfg: vla.VLAConfig, settings: "ARSettings", target, drafter=None):
-    """The target (and its drafter) at a method's settings: expanded to `target_scale`
+@dataclasses.dataclass(frozen=True)
+class Numerics:
+    """How a VLA method's models compute: the parameters' and KV caches' dtype, the precision
+    of float32 matrix products, the architecture the target is expanded to, and whether the
+    inference passes are unrolled."""
+    dtype: str = "float32"
+    matmul_precision: str = vla.VLAConfig.matmul_precision
+    target_scale: str = scale.SHIPPED
+    unroll: bool = vla.VLAConfig.unroll
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """A VLA method's runtime configuration: its numerics and its decoder's config (None:
+    greedy AR; `spec_decode.SpecConfig`: drafter trees; `hybrid.HybridConfig`: retrieval and
+    drafter drafts)."""
+    numerics: Numerics = Numerics()
+    decode: spec_decode.SpecConfig | hybrid.HybridConfig | None = None
+
+
+def in_numerics(cfg: vla.VLAConfig, numerics: Numerics, target, drafter=None):
+    """The target (and its drafter) at a method's numerics: expanded to `target_scale`
     (`heisd_jax.scale`), in their dtype and matmul precision, the inference passes unrolled
     or not. Returns (cfg, target params[, drafter params])."""
-    big = scale.scaled_config(cfg, settings.target_scale)  # refuses a scale smaller than the target first
+    big = scale.scaled_config(cfg, numerics.target_scale)  # refuses a scale smaller than the target first
     if big is not cfg:
-        scale.check_fits(cfg, settings.target_scale, settings.dtype)
-        dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, settings.target_scale, settings.dtype)
-        target, cfg = scale.expand_target(target, cfg, settings.target_scale, settings.dtype)
+        scale.check_fits(cfg, numerics.target_scale, numerics.dtype)
+        dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, numerics.target_scale,
+                                                                    numerics.dtype)
+        target, cfg = scale.expand_target(target, cfg, numerics.target_scale, numerics.dtype)
         drafter = dparams
-    cfg, *params = in_dtype(cfg, settings.dtype, *(p for p in (target, drafter) if p is not None),
-                            matmul_precision=settings.matmul_precision)
-    return (dataclasses.replace(cfg, unroll=settings.unroll), *params)
+    cfg, *params = in_dtype(cfg, numerics.dtype, *(p for p in (target, drafter) if p is not None),
+                            matmul_precision=numerics.matmul_precision)
+    return (dataclasses.replace(cfg, unroll=numerics.unroll), *params)
 
 
-def _setting(default, help: str, choices: tuple[str, ...] | None = None):
-    """A settings field: its default, its help line (the flag's), its valid values if a choice."""
-    return dataclasses.field(default=default, metadata={"help": help, "choices": choices})
-
-
-_SPEC, _HYB, _SEQ, _SKIP = spec_decode.SpecConfig, hybrid.HybridConfig, acceptance.SeqRelaxedConfig, acceptance.SkipConfig
-# Module names that fields below shadow (`acceptance`, `budget`) in their class bodies:
-TOKEN_RULES, ACTION_RULES, SKIP_SOURCES = acceptance.TOKEN_RULES, acceptance.ACTION_RULES, acceptance.SKIP_SOURCES
-BUDGETS, _BUDGET = budget.BUDGETS, budget.BudgetConfig
-_DEFAULT_TREES = "/".join("x".join(map(str, t)) for t in budget.DEFAULT_TREES)
+def _show_trees(trees: tuple[tuple[int, int, int], ...]) -> str:
+    return "/".join("x".join(map(str, t)) for t in trees)
 
 
 @dataclasses.dataclass(frozen=True)
-class ARSettings:
-    """Greedy autoregressive decoding: the target's prefill, then one pass per token."""
-    dtype: str = _setting("float32", "Parameters and KV cache in this dtype.", DTYPES)
-    matmul_precision: str = _setting(vla.VLAConfig.matmul_precision, "float32 matrix products: 'float32' in full "
-                                     "float32 (the same tokens at every batch size), 'default' at XLA's choice (TF32 "
-                                     "tensor cores for some shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': "
-                                     "that tensor-core algorithm for every product, float32 accumulation; 'tf32x3' "
-                                     "(GPUs), 'bf16x3', 'bf16x6', 'bf16x9' (GPUs): 3 to 9 such products per product, "
-                                     "near float32's rounding; 'tf32_rounded': every operand rounded to TF32 first, "
-                                     "then TF32 tensor cores (GPUs) or float32, whose products are then exact, so "
-                                     "every kernel forms the same ones.",
-                                     vla.MATMUL_PRECISIONS)
-    target_scale: str = _setting(scale.SHIPPED, "The target (and drafter) expanded, function-preserving, to a "
-                                 "larger architecture (heisd_jax.scale, docs/scale.md): the shipped target's tokens "
-                                 "at a larger model's pass costs.", scale.SCALE_NAMES)
-    unroll: bool = _setting(vla.VLAConfig.unroll, "Inference passes with the decoder layers (and AR's token loop) "
-                            "unrolled: one straight-line program per pass instead of a loop the host drives layer by "
-                            "layer on a GPU; compiles several times longer, runs slower on a CPU, and on a GPU is "
-                            "faster inside a compiled loop but slower called from Python (BENCHMARKS.md).")
+class Setting:
+    """One config field settable by name: the flag and sweep key `key`, its help line, its
+    valid values if a choice, the (key, value) it is only used with, and for a field whose
+    value is not a plain number, string or bool, how it is read from and written as text.
+    `settings` binds it to a method's config: where the field sits (`path`), its type (`kind`) and
+    the method's default (as text where `show` is given)."""
+    key: str
+    help: str
+    choices: tuple[str, ...] | None = None
+    only_with: tuple[str, object] | None = None
+    parse: Callable[[str], object] | None = None
+    show: Callable[[object], str] | None = None
+    path: tuple[str, ...] = ()
+    kind: type = str
+    default: object = None
 
 
-@dataclasses.dataclass(frozen=True)
-class DrafterSettings(ARSettings):
-    """Spec-VLA: EAGLE-2 draft trees from the drafter, verified by the target."""
-    top_k: int = _setting(_SPEC.top_k, "Draft tree: children kept per level (EAGLE-2 top-k).")
-    depth: int = _setting(_SPEC.depth, "Draft tree: depth.")
-    total_tokens: int = _setting(_SPEC.total_tokens, "Draft tree: nodes verified per round (<= top_k * depth).")
-    acceptance: str = _setting(_SPEC.acceptance, "Drafter trees: acceptance rule.", TOKEN_RULES)
-    relax_bins: int = _setting(_SPEC.relax_bins, "token_relaxed: accept a draft within this many bins of the "
-                               "target's choice (strict acceptance: 0 unless given).")
+# The settable fields of the configs, by class and field name (the fields not named here keep
+# their config's value). Flags, sweep keys, their types and each method's defaults come from
+# the method's config (`settings`), so each default is the config's, written once.
+_S = Setting
+_CALIBRATED = "the datastore's calibration, if it has one, replaces the default"
+SETTINGS: dict[type, dict[str, Setting]] = {
+    Numerics: {
+        "dtype": _S("dtype", "Parameters and KV cache in this dtype.", DTYPES),
+        "matmul_precision": _S("matmul_precision", "float32 matrix products: 'float32' in full float32 (the same "
+                               "tokens at every batch size), 'default' at XLA's choice (TF32 tensor cores for some "
+                               "shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': that tensor-core algorithm "
+                               "for every product, float32 accumulation; 'tf32x3' (GPUs), 'bf16x3', 'bf16x6', "
+                               "'bf16x9' (GPUs): 3 to 9 such products per product, near float32's rounding; "
+                               "'tf32_rounded': every operand rounded to TF32 first, then TF32 tensor cores (GPUs) "
+                               "or float32, whose products are then exact, so every kernel forms the same ones.",
+                               vla.MATMUL_PRECISIONS),
+        "target_scale": _S("target_scale", "The target (and drafter) expanded, function-preserving, to a larger "
+                           "architecture (heisd_jax.scale, docs/scale.md): the shipped target's tokens at a larger "
+                           "model's pass costs.", scale.SCALE_NAMES),
+        "unroll": _S("unroll", "Inference passes with the decoder layers (and AR's token loop) unrolled: one "
+                     "straight-line program per pass instead of a loop the host drives layer by layer on a GPU; "
+                     "compiles several times longer, runs slower on a CPU, and on a GPU is faster inside a compiled "
+                     "loop but slower called from Python (BENCHMARKS.md)."),
+    },
+    spec_decode.SpecConfig: {
+        "top_k": _S("top_k", "Draft tree: children kept per level (EAGLE-2 top-k)."),
+        "depth": _S("depth", "Draft tree: depth."),
+        "total_tokens": _S("total_tokens", "Draft tree: nodes verified per round (<= top_k * depth)."),
+        "acceptance": _S("acceptance", "Drafter trees: acceptance rule (strict: lossless; every other rule "
+                         "follows, relax_bins 0, retrieval_acceptance strict, verify-skip off, unless given).",
+                         acceptance.TOKEN_RULES),
+        "relax_bins": _S("relax_bins", "token_relaxed: accept a draft within this many bins of the target's "
+                         "choice (strict acceptance: 0 unless given)."),
+    },
+    hybrid.HybridConfig: {
+        "mode": _S("mode", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES),
+        "acceptance": _S("retrieval_acceptance", "Acceptance rule for retrieval drafts (strict acceptance: strict "
+                         "unless given).", acceptance.ACTION_RULES),
+        "relax_bins": _S("retrieval_relax_bins", "token_relaxed retrieval acceptance: bins."),
+        "n_candidates": _S("n_candidates", "Retrieved actions verified per step (0: no datastore query, the "
+                           "recent actions alone, verify-skip from retrieval off unless given)."),
+        "recent_candidates": _S("recent_candidates", "The env's own last executed actions verified as further "
+                                "candidates each retrieval step (our design; 0: verify-skip from recent actions "
+                                "off unless given)."),
+        "max_dist": _S("max_dist", "Candidates with a squared key distance above this are invalid."),
+        "verify": _S("verify", "Retrieval drafts verified inside the prefill or in a second pass.", hybrid.VERIFY),
+        "continuation": _S("continuation", "budget=fixed: what decodes the rest of an action after the prefill and "
+                           "its accepted candidate prefix: drafter rounds or single-token AR passes (no drafter).",
+                           hybrid.CONTINUATION, only_with=("budget", "fixed")),
+        "row_buckets": _S("row_buckets", "Rows that need a target pass (not skipped) run gathered in the smallest "
+                          "of this many batch fractions that holds them (1: always the whole batch; k > 1 compiles "
+                          "the decode k times)."),
+    },
+    acceptance.SeqRelaxedConfig: {
+        "r_max": _S("r_max", "seq_relaxed: no token further than this many bins from the target's (the paper's 15 "
+                    "costs closed-loop success on our suites)."),
+        "r_seq": _S("r_seq", "seq_relaxed: bound on the cumulative bin distance of the accepted prefix (the paper: "
+                    "42)."),
+    },
+    acceptance.SkipConfig: {
+        "enabled": _S("skip", "Verify-skip: a confident retrieval-mode row executes a candidate without a target "
+                      "pass (off with strict acceptance, or without the candidates its source needs, unless "
+                      "given)."),
+        "source": _S("skip_source", "Verify-skip: what a skipped step executes: the env's last action again "
+                     "(recent), or the datastore's top candidate (retrieval, the paper's; rarely confident enough "
+                     "to fire on the shipped stack).", acceptance.SKIP_SOURCES),
+        "n_confirm": _S("n_confirm", "Verify-skip from recent actions: the last this many verified steps each "
+                        "accepted their previous action whole."),
+        "k_skip": _S("k_skip", "Verify-skip: at most this many consecutive skipped target passes (longer runs of "
+                     "repeated actions cost closed-loop success)."),
+        "max_metric": _S("skip_max_metric", "Verify-skip only where the kinematic metric M is at most this (coarse "
+                         "motion; inf: wherever the row is in retrieval mode)."),
+        "eps": _S("skip_eps", f"Verify-skip: nearest-key squared distance under which retrieval is trusted "
+                  f"({_CALIBRATED})."),
+        "r_agree": _S("r_agree", "Verify-skip: the top candidates agree within this many bins."),
+    },
+    kinematics.BoundaryConfig: {
+        "tau_on": _S("tau_on", f"Boundary: metric above which the drafter mode starts ({_CALIBRATED})."),
+        "tau_off": _S("tau_off", f"Boundary: metric below which the retrieval mode starts ({_CALIBRATED})."),
+        "min_dwell": _S("min_dwell", f"Boundary: control steps a mode holds at least ({_CALIBRATED})."),
+    },
+    budget.BudgetConfig: {
+        "mode": _S("budget", "Draft budget chosen per step from measured costs (auto) or the one fixed tree "
+                   "(fixed).", budget.BUDGETS),
+        "trees": _S("budget_trees", "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
+                    "separated by '/' (a top_k/depth/total_tokens tree given instead: that tree alone).",
+                    only_with=("budget", "auto"), parse=budget.parse_trees, show=_show_trees),
+        "forget": _S("budget_forget", "budget=auto: per unchosen step, share by which an option's estimate "
+                     "returns to its long-run mean (0: never).", only_with=("budget", "auto")),
+        "margin": _S("budget_margin", "budget=auto: a drafting option must be predicted this much faster than AR "
+                     "to be chosen.", only_with=("budget", "auto")),
+        "max_batch": _S("budget_max_batch", "budget=auto: the largest batch size (rows per device) at which "
+                        "drafting options run; above it the method decodes as plain AR.",
+                        only_with=("budget", "auto")),
+    },
+    expert.ExpertConfig: {f.name: _S(f.name, "The scripted expert's " + f.name.replace("_", " ") + ".")
+                          for f in dataclasses.fields(expert.ExpertConfig)},
+}
+# Why a setting is only used with another's value (its error message says it).
+_ONLY_WITH_WHY = {"continuation": " (budget=auto chooses per step between AR after the verified candidates, option "
+                                  "ar+retrieval, and the drafter trees)"}
 
 
-@dataclasses.dataclass(frozen=True)
-class RetrievalSettings(DrafterSettings):
-    """Retrieval drafts (whole actions from the datastore) verified every step, drafter SD for
-    the rest of each action."""
-    acceptance: str = _setting("token_relaxed", "Drafter trees: acceptance rule (strict: every rule lossless, "
-                               "verify-skip off, unless given).", TOKEN_RULES)
-    relax_bins: int = _setting(9, "token_relaxed: accept a draft within this many bins of the target's choice "
-                               "(strict acceptance: 0 unless given).")
-    mode: str = _setting("retrieval", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES)
-    retrieval_acceptance: str = _setting("token_relaxed", "Acceptance rule for retrieval drafts (strict "
-                                         "acceptance: strict unless given).", ACTION_RULES)
-    retrieval_relax_bins: int = _setting(_HYB.relax_bins, "token_relaxed retrieval acceptance: bins.")
-    n_candidates: int = _setting(_HYB.n_candidates, "Retrieved actions verified per step (0: no datastore "
-                                 "query, the recent actions alone, verify-skip off unless given).")
-    recent_candidates: int = _setting(_HYB.recent_candidates, "The env's own last executed actions verified as "
-                                      "further candidates each retrieval step (our design).")
-    max_dist: float = _setting(_HYB.max_dist, "Candidates with a squared key distance above this are invalid.")
-    verify: str = _setting(_HYB.verify, "Retrieval drafts verified inside the prefill or in a second pass.",
-                           hybrid.VERIFY)
-    continuation: str = _setting(_HYB.continuation, "budget=fixed: what decodes the rest of an action after the "
-                                 "prefill and its accepted candidate prefix: drafter rounds or single-token AR "
-                                 "passes (no drafter).", hybrid.CONTINUATION)
-    skip: bool = _setting(False, "Verify-skip: a confident retrieval-mode row executes its top candidate without "
-                          "a target pass.")
-    skip_source: str = _setting(_SKIP.source, "Verify-skip: what a skipped step executes: the datastore's top "
-                                "candidate (retrieval) or the env's last action again (recent).", SKIP_SOURCES)
-    n_confirm: int = _setting(_SKIP.n_confirm, "Verify-skip from recent actions: the last this many verified "
-                              "steps each accepted their previous action whole.")
-    k_skip: int = _setting(_SKIP.k_skip, "Verify-skip: at most this many consecutive skipped target passes.")
-    skip_max_metric: float = _setting(_SKIP.max_metric, "Verify-skip only where the kinematic metric M is at most "
-                                      "this (coarse motion; inf: wherever the row is in retrieval mode).")
-    skip_eps: Optional[float] = _setting(None, "Verify-skip: nearest-key squared distance under which retrieval "
-                                         f"is trusted (default: the datastore's calibration, else {_SKIP.eps}).")
-    r_agree: int = _setting(_SKIP.r_agree, "Verify-skip: the top candidates agree within this many bins.")
-    r_max: int = _setting(_SEQ.r_max, "seq_relaxed: no token further than this many bins from the target's.")
-    r_seq: int = _setting(_SEQ.r_seq, "seq_relaxed: bound on the cumulative bin distance of the accepted prefix.")
-    tau_on: Optional[float] = _setting(None, "Boundary: metric above which the drafter mode starts (default: the "
-                                       "datastore's calibration).")
-    tau_off: Optional[float] = _setting(None, "Boundary: metric below which the retrieval mode starts (default: "
-                                        "the datastore's calibration).")
-    min_dwell: Optional[int] = _setting(None, "Boundary: control steps a mode holds at least (default: the "
-                                        "datastore's calibration).")
-    budget: str = _setting("fixed", "Draft budget chosen per step from measured costs (auto) or the one fixed "
-                           "tree (fixed).", BUDGETS)
-    budget_trees: str = _setting("", "budget=auto: draft trees to choose from besides AR, TOPKxDEPTHxTOTAL "
-                                 "separated by '/' (default: the top_k/depth/total_tokens tree if given, else "
-                                 f"{_DEFAULT_TREES}).")
-    budget_forget: float = _setting(_BUDGET.forget, "budget=auto: per unchosen step, share by which an "
-                                    "option's estimate returns to its long-run mean (0: never).")
-    budget_margin: float = _setting(_BUDGET.margin, "budget=auto: a drafting option must be predicted "
-                                    "this much faster than AR to be chosen.")
-    budget_max_batch: int = _setting(_BUDGET.max_batch, "budget=auto: the largest batch size (rows per device) at "
-                                     "which drafting options run; above it the method decodes as plain AR.")
-    row_buckets: int = _setting(_HYB.row_buckets, "Rows that need a target pass (not skipped) run gathered in the "
-                                "smallest of this many batch fractions that holds them (1: always the whole batch; "
-                                "k > 1 compiles the decode k times).")
-
-
-@dataclasses.dataclass(frozen=True)
-class HeiSDSettings(RetrievalSettings):
-    """HeiSD: the kinematic boundary picks retrieval or drafter drafts per step; verify-skip,
-    sequence-wise relaxed acceptance, and a draft budget chosen from measured costs."""
-    mode: str = _setting("hybrid", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES)
-    retrieval_acceptance: str = _setting("seq_relaxed", "Acceptance rule for retrieval drafts (strict acceptance: "
-                                         "strict unless given).", ACTION_RULES)
-    recent_candidates: int = _setting(4, "The env's own last executed actions verified as further candidates "
-                                      "each retrieval step (our design).")
-    skip: bool = _setting(True, "Verify-skip: a confident retrieval-mode row executes a candidate without a target "
-                          "pass (off with strict acceptance, or without the candidates its source needs, unless "
-                          "given).")
-    skip_source: str = _setting("recent", "Verify-skip: what a skipped step executes: the env's last action again "
-                                "(recent), or the datastore's top candidate (retrieval, the paper's; rarely confident "
-                                "enough to fire on the shipped stack).", SKIP_SOURCES)
-    n_confirm: int = _setting(1, "Verify-skip from recent actions: the last this many verified steps each accepted "
-                              "their previous action whole.")
-    k_skip: int = _setting(2, "Verify-skip: at most this many consecutive skipped target passes (longer runs of "
-                           "repeated actions cost closed-loop success).")
-    r_max: int = _setting(9, "seq_relaxed: no token further than this many bins from the target's (the paper's 15 "
-                          "costs closed-loop success on our suites).")
-    r_seq: int = _setting(24, "seq_relaxed: bound on the cumulative bin distance of the accepted prefix (the "
-                          "paper: 42).")
-    budget: str = _setting("auto", "Draft budget chosen per step from measured costs (auto) or the one fixed tree "
-                           "(fixed).", BUDGETS)
-
-
-def setting_types(settings_cls: type) -> dict[str, type]:
-    """Field name -> its Python type (int, float, bool, str; Optional[X] -> X)."""
-    hints = typing.get_type_hints(settings_cls)
-    out = {}
-    for f in dataclasses.fields(settings_cls):
-        kind = hints[f.name]
-        args = [a for a in typing.get_args(kind) if a is not type(None)]
-        out[f.name] = args[0] if args else kind
+def _bind(cfg, path: tuple[str, ...] = ()):
+    """The settings of config `cfg` (a tree of dataclasses), key -> bound `Setting`, in field order."""
+    out: dict[str, Setting] = {}
+    hints = typing.get_type_hints(type(cfg))
+    table = SETTINGS.get(type(cfg), {})
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name in table:
+            s = table[f.name]
+            kind = str if s.parse else next((a for a in typing.get_args(hints[f.name]) if a is not type(None)),
+                                            hints[f.name])
+            found = {s.key: dataclasses.replace(s, path=path + (f.name,), kind=kind,
+                                                default=s.show(value) if s.show else value)}
+        elif dataclasses.is_dataclass(value):
+            found = _bind(value, path + (f.name,))
+        else:
+            continue
+        clash = set(found) & set(out)
+        if clash:
+            raise ValueError(f"settings {sorted(clash)} name two fields of {type(cfg).__name__}")
+        out.update(found)
     return out
+
+
+def settings(name: str) -> dict[str, Setting]:
+    """The settings of method `name`, key -> `Setting` (its path in the method's config, type,
+    default, help, choices): its flags and sweep keys."""
+    return _bind(get(name).default)
+
+
+def _values(bound: dict[str, Setting], cfg) -> dict:
+    """Every setting's value in config `cfg`, as given (text where the field is not a plain value)."""
+    out = {}
+    for key, s in bound.items():
+        value = functools.reduce(getattr, s.path, cfg)
+        out[key] = s.show(value) if s.show else value
+    return out
+
+
+def settings_of(name: str, cfg) -> dict:
+    """The settings in effect in config `cfg` of method `name`, key -> value as given (a
+    setting only used with another's value left out where that does not hold):
+    `config(name, settings_of(name, c)) == c` for a config `c` reached by settings."""
+    bound = settings(name)
+    out = _values(bound, cfg)
+    return {k: v for k, v in out.items()
+            if not bound[k].only_with or out[bound[k].only_with[0]] == bound[k].only_with[1]}
+
+
+def _replaced(cfg, updates: dict[tuple[str, ...], object]):
+    """`cfg` with the fields at the given paths replaced; each nested config is rebuilt (and
+    checked) once, with all its changes."""
+    here = {p[0]: v for p, v in updates.items() if len(p) == 1}
+    below: dict[str, dict] = {}
+    for p, v in updates.items():
+        if len(p) > 1:
+            below.setdefault(p[0], {})[p[1:]] = v
+    here.update({k: _replaced(getattr(cfg, k), sub) for k, sub in below.items()})
+    return dataclasses.replace(cfg, **here) if here else cfg
 
 
 def _cast(key: str, value, kind):
@@ -220,81 +292,71 @@ def _cast(key: str, value, kind):
         raise ValueError(f"setting {key}={value!r} is not a {kind.__name__}") from e
 
 
-def check_settings(name: str, settings: dict) -> dict:
-    """A method's given settings, typed and validated against its settings record (a clear
-    error naming the valid keys and values), before anything loads or compiles."""
-    method = get(name)
-    types = setting_types(method.settings) if method.settings else {}
-    unknown = sorted(set(settings) - set(types))
+def _implied(values: dict, given: dict) -> dict:
+    """The settings that follow from others, where not given themselves: strict acceptance
+    means lossless (relax_bins 0, strict retrieval acceptance, verify-skip off); verify-skip
+    needs its source's candidates (the datastore's, or the recent actions); a draft tree given
+    by top_k/depth/total_tokens is the one tree budget=auto chooses from."""
+    out = {}
+    if values.get("acceptance") == "strict":
+        out.update(relax_bins=0, retrieval_acceptance="strict", skip=False)
+    if "skip" in values and ((values["n_candidates"] == 0 and values["skip_source"] == "retrieval")
+                             or (values["recent_candidates"] == 0 and values["skip_source"] == "recent")):
+        out["skip"] = False
+    if values.get("budget") == "auto" and any(k in given for k in ("top_k", "depth", "total_tokens")):
+        out["budget_trees"] = _show_trees(((values["top_k"], values["depth"], values["total_tokens"]),))
+    return {k: v for k, v in out.items() if k in values and k not in given}
+
+
+def _calibrated(cfg, calibration: dict | None):
+    """`cfg` with a datastore's calibration (`load_calibration`): metric scales, boundary
+    thresholds, skip_eps. Only a hybrid method's config has them."""
+    cal = calibration or {}
+    if not isinstance(getattr(cfg, "decode", None), hybrid.HybridConfig) or not cal:
+        return cfg
+    up = {("decode", "boundary", k): v for k, v in cal.get("boundary", {}).items()}
+    if "metric_scales" in cal:
+        up[("decode", "metric", "scales")] = tuple(cal["metric_scales"])
+    if "skip_eps" in cal:
+        up[("decode", "skip", "eps")] = cal["skip_eps"]
+    return _replaced(cfg, up)
+
+
+def _config(name: str, given: dict, calibration: dict | None):
+    base = _calibrated(get(name).default, calibration)
+    bound = settings(name)
+    values = {**_values(bound, base), **given}
+    values.update(_implied(values, given))
+    return _replaced(base, {s.path: s.parse(values[k]) if s.parse else values[k] for k, s in bound.items()})
+
+
+def check_settings(name: str, given: dict) -> dict:
+    """A method's given settings, typed and validated against its settings (a clear error
+    naming the valid keys and values), before anything loads or compiles."""
+    bound = settings(name)
+    unknown = sorted(set(given) - set(bound))
     if unknown:
-        raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(types) or 'none'}")
-    out = {k: _cast(k, v, types[k]) for k, v in settings.items()}
-    for f in dataclasses.fields(method.settings) if method.settings else ():
-        choices = f.metadata.get("choices")
-        if f.name in out and choices and out[f.name] not in choices:
-            raise ValueError(f"unknown {f.name} {out[f.name]!r}; valid: {', '.join(choices)}")
-    if name == "expert":
-        expert.ExpertConfig(**out)
-    elif name == "drafter":
-        drafter_spec(out)
-    elif get(name).budget:
-        hybrid_config(name, out)
+        raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(bound) or 'none'}")
+    out = {k: _cast(k, v, bound[k].kind) for k, v in given.items()}
+    for key, value in out.items():
+        s = bound[key]
+        if s.choices and value not in s.choices:
+            raise ValueError(f"unknown {key} {value!r}; valid: {', '.join(s.choices)}")
+    values = {**{k: s.default for k, s in bound.items()}, **out}
+    for key in out:
+        if bound[key].only_with:
+            other, wanted = bound[key].only_with
+            if values[other] != wanted:
+                raise ValueError(f"{key} is only used with {other}={wanted}{_ONLY_WITH_WHY.get(key, '')}")
+    _config(name, out, None)
     return out
 
 
-def drafter_spec(given: dict) -> spec_decode.SpecConfig:
-    """The drafter method's tree settings over its defaults."""
-    s = {**dataclasses.asdict(DrafterSettings()), **given}
-    return spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
-
-
-def hybrid_config(name: str, given: dict, calibration: dict | None = None) -> hybrid.HybridConfig:
-    """The HybridConfig of method `name` (retrieval, heisd) from its given settings over the
-    method's defaults and the datastore's calibration (metric scales, thresholds)."""
-    s = {**dataclasses.asdict(get(name).settings()), **given}
-    if s["acceptance"] == "strict":  # lossless unless asked otherwise
-        for key, value in (("relax_bins", 0), ("retrieval_acceptance", "strict"), ("skip", False)):
-            if key not in given:
-                s[key] = value
-    if "skip" not in given and ((s["n_candidates"] == 0 and s["skip_source"] == "retrieval")
-                                or (s["recent_candidates"] == 0 and s["skip_source"] == "recent")):
-        s["skip"] = False  # verify-skip needs its source's candidates: the datastore's, or the recent actions
-    cal = calibration or {}
-    spec = spec_decode.SpecConfig(**{k: s[k] for k in ("top_k", "depth", "total_tokens", "acceptance", "relax_bins")})
-    skip = acceptance.SkipConfig(enabled=s["skip"], source=s["skip_source"], n_confirm=s["n_confirm"],
-                                 k_skip=s["k_skip"], r_agree=s["r_agree"], max_metric=s["skip_max_metric"],
-                                 eps=s["skip_eps"] if s["skip_eps"] is not None else cal.get("skip_eps", _SKIP.eps))
-    metric = kinematics.MetricConfig(scales=tuple(cal.get("metric_scales", kinematics.MetricConfig().scales)))
-    bd = {**cal.get("boundary", {}), **{k: s[k] for k in ("tau_on", "tau_off", "min_dwell") if s[k] is not None}}
-    return hybrid.HybridConfig(
-        spec=spec, mode=s["mode"], acceptance=s["retrieval_acceptance"], relax_bins=s["retrieval_relax_bins"],
-        seq=acceptance.SeqRelaxedConfig(r_max=s["r_max"], r_seq=s["r_seq"]),
-        n_candidates=s["n_candidates"], recent_candidates=s["recent_candidates"], max_dist=s["max_dist"],
-        verify=s["verify"], continuation=s["continuation"], skip=skip, metric=metric, row_buckets=s["row_buckets"],
-        boundary=kinematics.BoundaryConfig(**bd), budget=budget_config(s, given))
-
-
-def budget_config(s: dict, given: dict) -> budget.BudgetConfig:
-    """budget=auto chooses per step among AR and the trees of `budget_trees` (default: the
-    tree given by top_k/depth/total_tokens if any, else budget.DEFAULT_TREES)."""
-    mode = s["budget"]
-    if mode == "auto" and "continuation" in given:
-        raise ValueError("continuation is only used with budget=fixed (budget=auto chooses per step between AR after "
-                         "the verified candidates, option ar+retrieval, and the drafter trees)")
-    if mode != "auto":
-        for key in ("budget_trees", "budget_forget", "budget_margin", "budget_max_batch"):
-            if key in given:
-                raise ValueError(f"{key} is only used with budget=auto")
-        return budget.BudgetConfig(mode=mode)
-    if s["budget_trees"]:
-        trees = budget.parse_trees(s["budget_trees"])
-    elif any(k in given for k in ("top_k", "depth", "total_tokens")):
-        sp = spec_decode.SpecConfig(top_k=s["top_k"], depth=s["depth"], total_tokens=s["total_tokens"])
-        trees = ((sp.top_k, sp.depth, sp.total_tokens),)
-    else:
-        trees = budget.DEFAULT_TREES
-    return budget.BudgetConfig(mode="auto", trees=trees, forget=s["budget_forget"], margin=s["budget_margin"],
-                               max_batch=s["budget_max_batch"])
+def config(name: str, given: dict | None = None, calibration: dict | None = None):
+    """The runtime config of method `name`: its default config, a datastore's `calibration`
+    over it (metric scales, boundary thresholds, skip_eps), then the settings `given`
+    (checked) and the settings they imply (`_implied`)."""
+    return _config(name, check_settings(name, given or {}), calibration)
 
 
 def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
@@ -311,23 +373,23 @@ def load_calibration(datastore_path: str | Path, meta: dict) -> dict:
             cal["skip_eps"] = b["skip_eps"]
     return cal
 
-
 def _build_expert(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
-    return expert.policy(env, expert.ExpertConfig(**given))
+    return expert.policy(env, config("expert", given))
 
 
 def _build_ar(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
     params, cfg, tok = _load_target(env, paths["checkpoint"])
-    cfg, params = in_numerics(cfg, ARSettings(**given), params)
+    cfg, params = in_numerics(cfg, config("ar", given).numerics, params)
     return vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
 
 
 def _build_drafter(env: TabletopEnv, paths: dict, given: dict, **_) -> Policy:
-    spec = drafter_spec(given)
+    run = config("drafter", given)
+    spec = run.decode
     params, cfg, tok = _load_target(env, paths["checkpoint"])
     spec.check_fits(cfg)
     dparams, _ = checkpoint.load_drafter(paths["drafter"], cfg, params)
-    cfg, params, dparams = in_numerics(cfg, DrafterSettings(**given), params, dparams)
+    cfg, params, dparams = in_numerics(cfg, run.numerics, params, dparams)
     return vla_policy.decoding_policy("drafter", {"target": params, "drafter": dparams}, cfg, tok,
                                       vla_policy.drafter_sd(spec), spec=spec)
 
@@ -357,9 +419,10 @@ def load_hybrid(name: str, paths: dict, given: dict, env: TabletopEnv | None = N
     if missing:
         raise ValueError(f"datastore {paths['datastore']} has no entries for tasks "
                          f"{[tasks_lib.ALL_TASKS[i].name for i in missing]}; rebuild it from demos of those tasks")
-    hcfg = hybrid_config(name, given, load_calibration(paths["datastore"], meta))
+    run = _config(name, given, load_calibration(paths["datastore"], meta))
+    hcfg = run.decode
     hcfg.check_fits(cfg)
-    cfg, params, dparams = in_numerics(cfg, get(name).settings(**given), params, dparams)
+    cfg, params, dparams = in_numerics(cfg, run.numerics, params, dparams)
     return {"target": params, "drafter": dparams, "store": store}, cfg, tok, hcfg, key_spec, meta
 
 
@@ -397,7 +460,7 @@ def _build_hybrid(name: str):
 class Method:
     """One decoding method: everything the evaluator needs to know about it."""
     name: str
-    settings: type  # its settings dataclass: flags, sweep keys and defaults
+    default: Config | expert.ExpertConfig  # what it runs at no settings; its fields are the settings (`settings`)
     loads: tuple[str, ...]  # what it reads: "checkpoint" (target VLA), "drafter", "datastore"
     renders: bool  # looks at the camera image (the expert does not: render off, faster)
     budget: bool  # may choose its draft budget from measured costs (takes batch_size, cost tables)
@@ -407,13 +470,19 @@ class Method:
 DEFAULT_PATHS = {"checkpoint": vla_policy.DEFAULT_CHECKPOINT, "drafter": vla_policy.DEFAULT_DRAFTER,
                  "datastore": vla_policy.DEFAULT_DATASTORE}
 METHODS: dict[str, Method] = {m.name: m for m in (
-    Method("expert", expert.ExpertConfig, (), renders=False, budget=False, build=_build_expert),
-    Method("ar", ARSettings, ("checkpoint",), renders=True, budget=False, build=_build_ar),
-    Method("drafter", DrafterSettings, ("checkpoint", "drafter"), renders=True, budget=False, build=_build_drafter),
-    Method("retrieval", RetrievalSettings, ("checkpoint", "drafter", "datastore"), renders=True, budget=True,
-           build=_build_hybrid("retrieval")),
-    Method("heisd", HeiSDSettings, ("checkpoint", "drafter", "datastore"), renders=True, budget=True,
-           build=_build_hybrid("heisd")),
+    Method("expert", expert.ExpertConfig(), (), renders=False, budget=False, build=_build_expert),
+    Method("ar", Config(), ("checkpoint",), renders=True, budget=False, build=_build_ar),
+    Method("drafter", Config(decode=spec_decode.SpecConfig()), ("checkpoint", "drafter"), renders=True, budget=False,
+           build=_build_drafter),
+    # Retrieval drafts verified every step, drafter SD for the rest of each action: the paper's
+    # retrieval side alone, token-wise relaxed, without verify-skip.
+    Method("retrieval", Config(decode=dataclasses.replace(hybrid.PAPER, mode="retrieval", acceptance="token_relaxed",
+                                                          skip=dataclasses.replace(hybrid.PAPER.skip, enabled=False))),
+           ("checkpoint", "drafter", "datastore"), renders=True, budget=True, build=_build_hybrid("retrieval")),
+    # HeiSD: the kinematic boundary picks retrieval or drafter drafts per step; verify-skip,
+    # sequence-wise relaxed acceptance, a draft budget chosen from measured costs.
+    Method("heisd", Config(decode=hybrid.HybridConfig()), ("checkpoint", "drafter", "datastore"), renders=True,
+           budget=True, build=_build_hybrid("heisd")),
 )}
 DECODING_METHODS = tuple(name for name, m in METHODS.items() if "checkpoint" in m.loads)  # the VLA methods
 
@@ -442,7 +511,7 @@ def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = 
                 calibrate_costs: bool = False, log: Callable[[str], None] = print, **settings) -> Policy:
     """The policy of method `name`; `checkpoint`/`drafter`/`datastore` (default: the shipped
     ones) reach only the methods that load them, `settings` are the method's own (its
-    settings record's fields). batch_size (rows per device), cost_cache and calibrate_costs
+    settings: `settings(name)`). batch_size (rows per device), cost_cache and calibrate_costs
     (measure a missing decode-cost table now instead of failing) reach the methods with a
     draft budget."""
     method = get(name)

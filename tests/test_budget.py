@@ -16,7 +16,7 @@ from tiny_models import CFG, HYBRID_B as B, candidates
 
 TREES = ((2, 1, 2), (2, 2, 4))
 AUTO = hybrid.HybridConfig(spec=sd.SpecConfig(top_k=2, depth=2, total_tokens=4), mode="hybrid", acceptance="strict",
-                           n_candidates=3, skip=acceptance.SkipConfig(enabled=False),
+                           n_candidates=3, recent_candidates=0, skip=acceptance.SkipConfig(enabled=False),
                            budget=budget.BudgetConfig(mode="auto", trees=TREES))
 ALL_OPTS = budget.options(AUTO.budget, AUTO.mode)
 OPTS = tuple(o for o in ALL_OPTS if o != budget.Option(None, True))  # the chooser's tests: AR and the trees
@@ -281,14 +281,14 @@ def test_bad_budget_settings_are_refused():
     with pytest.raises(ValueError, match="valid: float32, bfloat16"):
         methods.check_settings("ar", {"dtype": "float16"})
     s = methods.check_settings("heisd", {"top_k": 4, "depth": 2, "total_tokens": 8})
-    assert methods.hybrid_config("heisd", s).budget.trees == ((4, 2, 8),)  # the given tree bounds the budget
-    assert methods.hybrid_config("heisd", {}).budget == budget.BudgetConfig(mode="auto")
-    assert methods.hybrid_config("retrieval", {}).budget.mode == "fixed"
+    assert methods.config("heisd", s).decode.budget.trees == ((4, 2, 8),)  # the given tree bounds the budget
+    assert methods.config("heisd").decode.budget == budget.BudgetConfig(mode="auto")
+    assert methods.config("retrieval").decode.budget.mode == "fixed"
     with pytest.raises(ValueError, match="only used with budget=fixed"):
         methods.check_settings("heisd", {"continuation": "ar"})  # auto chooses it per step
     with pytest.raises(ValueError, match="valid: drafter, ar"):
         methods.check_settings("heisd", {"budget": "fixed", "continuation": "eagle"})
-    assert methods.hybrid_config("heisd", {"budget": "fixed", "continuation": "ar"}).continuation == "ar"
+    assert methods.config("heisd", {"budget": "fixed", "continuation": "ar"}).decode.continuation == "ar"
 
 
 def test_bfloat16_strict_equals_bfloat16_ar(tiny_hybrid):

@@ -59,8 +59,6 @@ def test_bad_flag_writes_nothing(tmp_path):
 
 
 def test_method_flags_are_the_settings_fields():
-    import dataclasses
-
     from absl import app, flags
 
     from experiments import method_flags
@@ -68,9 +66,9 @@ def test_method_flags_are_the_settings_fields():
 
     fv = flags.FlagValues()
     names = method_flags.define(flag_values=fv)
-    fields = {f.name for name in methods.DECODING_METHODS for f in dataclasses.fields(methods.get(name).settings)}
+    fields = {key for name in methods.DECODING_METHODS for key in methods.settings(name)}
     assert set(names) == fields and len(names) == len(fields)
-    assert fv["budget"].parser.enum_values == list(methods.HeiSDSettings.__dataclass_fields__["budget"].metadata["choices"])
+    assert fv["budget"].parser.enum_values == list(methods.settings("heisd")["budget"].choices)
     assert "heisd auto" in fv["budget"].help and "retrieval fixed" in fv["budget"].help  # each method's default
     fv(["prog", "--k_skip=2", "--skip=false", "--budget_trees=4x2x8"])
     assert method_flags.given("heisd", fv) == {"k_skip": 2, "skip": False, "budget_trees": "4x2x8"}

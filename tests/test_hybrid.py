@@ -15,7 +15,7 @@ from heisd_jax.tokenizer import ActionTokenizer
 from tiny_models import CFG, HYBRID_B as B, candidates
 
 SPEC = sd.SpecConfig(top_k=2, depth=2, total_tokens=4)
-STRICT = hybrid.HybridConfig(spec=SPEC, mode="retrieval", acceptance="strict", n_candidates=3,
+STRICT = dataclasses.replace(hybrid.PAPER, spec=SPEC, mode="retrieval", acceptance="strict", n_candidates=3,
                              skip=acceptance.SkipConfig(enabled=False))
 
 
@@ -62,7 +62,7 @@ def test_strict_hybrid_equals_ar_token_for_token(tiny_hybrid, verify, continuati
 def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(tiny_hybrid):
     params, obs, ar_tokens = tiny_hybrid
     cand, _ = candidates(ar_tokens, np.random.default_rng(2))
-    hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", skip=acceptance.SkipConfig())
+    hcfg = dataclasses.replace(STRICT, acceptance="seq_relaxed", skip=hybrid.PAPER.skip)
     use = jnp.ones((B,), bool)
     skip = jnp.array([True, False, True, False, False, False])
     valid = jnp.ones((B, 3), bool)
@@ -89,8 +89,8 @@ def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(tiny_hybrid):
     p = dict(params, store=store)
     kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
                             gripper_vel=jnp.zeros((B,)))
-    hcfg = hybrid.HybridConfig(spec=SPEC, mode="hybrid", acceptance="seq_relaxed", n_candidates=3,
-                               skip=acceptance.SkipConfig(eps=1e-3, k_skip=2),
+    hcfg = dataclasses.replace(hybrid.PAPER, spec=SPEC, mode="hybrid", acceptance="seq_relaxed", n_candidates=3,
+                               skip=acceptance.SkipConfig(source="retrieval", eps=1e-3, k_skip=2),
                                boundary=kinematics.BoundaryConfig(tau_on=1.0, tau_off=0.5, min_dwell=1))
     run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
     state = dataclasses.replace(state, boundary=kinematics.boundary_init((B,), kinematics.RETRIEVAL))
@@ -281,9 +281,9 @@ def test_config_rejects_bad_settings():
     with pytest.raises(ValueError, match=r"n_candidates \+ recent_candidates must be <="):
         hybrid.HybridConfig(n_candidates=40).check_fits(CFG)
     with pytest.raises(ValueError, match="nothing to verify"):
-        hybrid.HybridConfig(n_candidates=0, skip=acceptance.SkipConfig(enabled=False))
+        hybrid.HybridConfig(n_candidates=0, recent_candidates=0, skip=acceptance.SkipConfig(enabled=False))
     with pytest.raises(ValueError, match="n_candidates=0 .* switch skip off"):
-        hybrid.HybridConfig(n_candidates=0, recent_candidates=4)
+        hybrid.HybridConfig(n_candidates=0, skip=acceptance.SkipConfig(source="retrieval"))
     with pytest.raises(ValueError, match="valid: drafter, ar"):
         hybrid.HybridConfig(continuation="eagle")
     with pytest.raises(ValueError, match="tau_on > tau_off"):
@@ -308,12 +308,12 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
         methods.check_settings("heisd", {"skip": "maybe"})
     with pytest.raises(ValueError, match="switch skip off"):
         methods.check_settings("heisd", {"acceptance": "strict", "skip": True})
-    assert methods.hybrid_config("heisd", {"acceptance": "strict"}).lossless
+    assert methods.config("heisd", {"acceptance": "strict"}).decode.lossless
     # Verify-skip needs its source's candidates: off without them unless asked for.
-    assert not methods.hybrid_config("heisd", {"n_candidates": 0, "skip_source": "retrieval"}).skip.enabled
-    assert not methods.hybrid_config("heisd", {"recent_candidates": 0}).skip.enabled
-    assert methods.hybrid_config("heisd", {"n_candidates": 0}).skip.enabled  # the recent actions remain
-    assert not methods.hybrid_config("heisd", {}).lossless
+    assert not methods.config("heisd", {"n_candidates": 0, "skip_source": "retrieval"}).decode.skip.enabled
+    assert not methods.config("heisd", {"recent_candidates": 0}).decode.skip.enabled
+    assert methods.config("heisd", {"n_candidates": 0}).decode.skip.enabled  # the recent actions remain
+    assert not methods.config("heisd", {}).decode.lossless
     with pytest.raises(ValueError, match="unknown settings \\['top_k'\\]; valid: dtype"):
         methods.check_settings("ar", {"top_k": 4})
 
@@ -332,7 +332,7 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
             self.fixed = fixed
 
         def costs(self):
-            n = len(budget.options(methods.hybrid_config("heisd", {}).budget, "hybrid"))
+            n = len(budget.options(methods.config("heisd").decode.budget, "hybrid"))
             return budget.Costs(fixed_ms=jnp.asarray([1.0] + [self.fixed] * (n - 1), jnp.float32),
                                 round_ms=jnp.full((n,), 0.5, jnp.float32))
 
@@ -352,7 +352,7 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
         # Above budget_max_batch no cost table is loaded or measured at all.
         assert bool(tables) == ("budget_max_batch" in given)
     with pytest.raises(ValueError, match="budget_max_batch is only used with budget=auto"):
-        methods.hybrid_config("heisd", {"budget": "fixed", "budget_max_batch": 4})
+        methods.config("heisd", {"budget": "fixed", "budget_max_batch": 4})
     with pytest.raises(ValueError, match="max_batch must be >= 1"):
         budget.BudgetConfig(mode="auto", max_batch=0)
 

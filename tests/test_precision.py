@@ -72,9 +72,9 @@ def test_bad_precision_is_refused_with_the_valid_ones():
 
 def test_method_setting_reaches_the_config():
     cfg, _ = methods.in_dtype(CFG, "float32", {}, matmul_precision="default")
-    assert cfg.matmul_precision == "default" and methods.ARSettings().matmul_precision == "float32"
-    cfg, _ = methods.in_numerics(CFG, methods.ARSettings(unroll=True), {})
-    assert cfg.unroll and not methods.ARSettings().unroll and methods.check_settings("ar", {"unroll": "true"})["unroll"]
+    assert cfg.matmul_precision == "default" and methods.Numerics().matmul_precision == "float32"
+    cfg, _ = methods.in_numerics(CFG, methods.config("ar", {"unroll": "true"}).numerics, {})
+    assert cfg.unroll and not methods.Numerics().unroll and methods.check_settings("ar", {"unroll": "true"})["unroll"]
 
 
 def _is_rounding(eqn) -> bool:

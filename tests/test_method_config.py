@@ -1,0 +1,88 @@
+"""One configuration per method: each method's default config is the library's config (the
+shipped heisd is `HybridConfig()`), its settings are that config's fields by name (a round
+trip key=value -> config -> key=value), the implied settings and the datastore's calibration
+fill what is not given, and bad keys and values are refused by name."""
+
+import dataclasses
+
+import pytest
+
+from heisd_jax import acceptance, budget, hybrid, methods, spec_decode
+
+
+def test_library_defaults_are_the_shipped_methods():
+    assert methods.config("heisd") == methods.Config(decode=hybrid.HybridConfig()) == methods.get("heisd").default
+    assert methods.config("drafter") == methods.Config(decode=spec_decode.SpecConfig())
+    assert methods.config("ar") == methods.Config(numerics=methods.Numerics())
+    h = hybrid.HybridConfig()
+    assert (h.seq, h.skip, h.budget) == (acceptance.SeqRelaxedConfig(), acceptance.SkipConfig(), budget.BudgetConfig())
+    assert (h.seq.r_max, h.seq.r_seq, h.recent_candidates, h.skip.source, h.budget.mode) == (9, 24, 4, "recent", "auto")
+    # The paper's values, a named preset; the retrieval method is its retrieval side, token-relaxed, no skip.
+    assert (hybrid.PAPER.seq.r_max, hybrid.PAPER.seq.r_seq, hybrid.PAPER.skip.source) == (15, 42, "retrieval")
+    r = methods.config("retrieval").decode
+    assert r == dataclasses.replace(hybrid.PAPER, mode="retrieval", acceptance="token_relaxed",
+                                    skip=dataclasses.replace(hybrid.PAPER.skip, enabled=False))
+    assert methods.settings("heisd")["r_max"].default == 9 and methods.settings("retrieval")["r_max"].default == 15
+
+
+@pytest.mark.parametrize("name,given", [
+    ("heisd", {"budget": "fixed", "continuation": "ar"}),
+    ("heisd", {"budget_trees": "4x2x8/2x2x4", "budget_margin": 0.2, "skip_source": "retrieval", "tau_on": 3.0}),
+    ("heisd", {"target_scale": "llama2-7b", "dtype": "bfloat16", "r_max": 15, "skip": False}),
+    ("retrieval", {"mode": "hybrid", "retrieval_acceptance": "seq_relaxed", "skip_eps": 0.1, "min_dwell": 2}),
+    ("drafter", {"acceptance": "token_relaxed", "relax_bins": 9, "top_k": 4, "depth": 2, "total_tokens": 8}),
+    ("ar", {"matmul_precision": "default", "unroll": True}),
+    ("expert", {"gain": 1.0, "action_noise": 0.1}),
+])
+def test_settings_round_trip_through_the_config(name, given):
+    cfg = methods.config(name, given)
+    back = methods.settings_of(name, cfg)
+    assert {k: back[k] for k in given} == given
+    assert methods.config(name, back) == cfg
+    assert methods.settings_of(name, methods.get(name).default) == methods.settings_of(name, methods.config(name))
+
+
+def test_sweep_keys_reach_the_nested_config():
+    (n1, s1), (n2, s2), (n3, s3) = methods.parse_method_list(
+        "heisd:budget=fixed,continuation=ar;drafter:acceptance=token_relaxed,relax_bins=9;"
+        "heisd:target_scale=llama2-7b,dtype=bfloat16")
+    h = methods.config(n1, s1).decode
+    assert (h.budget.mode, h.continuation) == ("fixed", "ar")
+    assert methods.config(n2, s2).decode == spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=9)
+    c = methods.config(n3, s3)
+    assert (c.numerics.target_scale, c.numerics.dtype, c.decode) == ("llama2-7b", "bfloat16", hybrid.HybridConfig())
+
+
+def test_implied_settings_and_calibration_fill_what_is_not_given():
+    strict = methods.config("heisd", {"acceptance": "strict"}).decode  # lossless unless asked otherwise
+    assert strict.lossless and strict.spec.relax_bins == 0 and strict.acceptance == "strict"
+    assert methods.config("heisd", {"acceptance": "strict", "retrieval_acceptance": "seq_relaxed",
+                                    "skip": False}).decode.acceptance == "seq_relaxed"
+    assert not methods.config("heisd", {"recent_candidates": 0}).decode.skip.enabled  # no candidates to repeat
+    cal = {"metric_scales": [0.1, 0.2, 0.3, 0.4, 0.5], "boundary": {"tau_on": 2.0, "tau_off": 1.0, "min_dwell": 4},
+           "skip_eps": 0.02}
+    h = methods.config("heisd", {"tau_on": 3.0}, cal).decode
+    assert (h.boundary.tau_on, h.boundary.tau_off, h.boundary.min_dwell) == (3.0, 1.0, 4)
+    assert h.metric.scales == (0.1, 0.2, 0.3, 0.4, 0.5) and h.skip.eps == 0.02
+    assert methods.config("heisd", {"skip_eps": 0.5}, cal).decode.skip.eps == 0.5
+
+
+def test_bad_keys_and_values_are_refused_by_name():
+    with pytest.raises(ValueError, match=r"unknown settings \['budjet'\]; valid: .*budget, budget_trees"):
+        methods.check_settings("heisd", {"budjet": "fixed"})
+    with pytest.raises(ValueError, match="unknown budget 'sometimes'; valid: auto, fixed"):
+        methods.check_settings("heisd", {"budget": "sometimes"})
+    with pytest.raises(ValueError, match="unknown acceptance 'seq_relaxed'; valid: strict, token_relaxed"):
+        methods.check_settings("drafter", {"acceptance": "seq_relaxed"})
+    with pytest.raises(ValueError, match="unknown retrieval_acceptance 'loose'; valid: strict, token_relaxed, seq_"):
+        methods.parse_method_list("retrieval:retrieval_acceptance=loose")
+    with pytest.raises(ValueError, match="TOPKxDEPTHxTOTAL"):
+        methods.check_settings("heisd", {"budget_trees": "4x2"})
+    with pytest.raises(ValueError, match=r"unknown settings \['skip'\]; valid: dtype"):
+        methods.check_settings("drafter", {"skip": True})
+
+
+def test_every_declared_setting_is_some_methods():
+    keys = {k for name in methods.METHODS for k in methods.settings(name)}
+    declared = {s.key for table in methods.SETTINGS.values() for s in table.values()}
+    assert declared == keys
