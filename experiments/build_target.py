@@ -60,6 +60,8 @@ flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every tr
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
+flags.DEFINE_integer("train_devices", 1, "Local devices each training stage runs on, data parallel (0: all of them; "
+                     "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
                      "a stage of ~3-6 minutes on an H100): added to the drafter's training states, so it learns to "
                      "predict the target where the target itself goes, and with --datastore_source=rollouts the "
@@ -131,7 +133,8 @@ def plan(w: Path) -> list[Stage]:
     # Suite weights shape the training data only; the evaluation runs every task's fixed states.
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
-             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000"]
+             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
+             f"--devices={FLAGS.train_devices}"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
@@ -181,7 +184,8 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
                                         f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
                                         f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
-                                        "--log_every=500", "--ckpt_every=1000", f"--export={w / 'drafter'}"],
+                                        "--log_every=500", "--ckpt_every=1000", f"--devices={FLAGS.train_devices}",
+                                        f"--export={w / 'drafter'}"],
                             w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
     source = rollouts if FLAGS.datastore_source == "rollouts" else w / "demos"
     if "datastore" not in FLAGS.skip:
@@ -305,6 +309,9 @@ def main(argv):
         raise app.UsageError(f"--label_sigma_bins must be >= 0, got {FLAGS.label_sigma_bins}")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
+    if FLAGS.train_devices < 0 or (FLAGS.train_devices and FLAGS.batch_size % FLAGS.train_devices):
+        raise app.UsageError(f"--train_devices={FLAGS.train_devices}: must be >= 0 (0: all local devices) and divide "
+                             f"--batch_size={FLAGS.batch_size}")
     _betas()
     from envs import tasks as tasks_lib  # noqa: PLC0415
 
