@@ -47,6 +47,8 @@ flags.DEFINE_enum("compute_dtype", "bfloat16", ["float32", "bfloat16"], "Activat
                   "and optimizer state stay float32; the exported policy computes in float32).")
 flags.DEFINE_string("out", "runs/vla", "Run directory (training state, log).")
 flags.DEFINE_string("export", "", "If set, write the final parameters as a policy checkpoint here.")
+flags.DEFINE_enum("export_param_dtype", "float32", list(checkpoint.PARAM_DTYPES), "--model=vla: the dtype the exported "
+                  "policy's parameters are stored in (bfloat16: half the file; loaded back in bfloat16).")
 flags.DEFINE_integer("steps", 8000, "Optimizer steps.")
 flags.DEFINE_integer("batch_size", 256, "Minibatch size.")
 flags.DEFINE_float("lr", 3e-4, "Peak learning rate.")
@@ -171,8 +173,9 @@ def train_vla(out: Path, cfg: train.TrainConfig):
                                                       "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype})
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
-        checkpoint.save_policy(FLAGS.export, state.params, model_cfg, tok,
-                               extra={k: meta[k] for k in ("train", "demos", "init", "compute_dtype")})
+        checkpoint.save_policy(FLAGS.export, _first(state.params), model_cfg, tok,
+                               extra={k: meta[k] for k in ("train", "demos", "init", "compute_dtype")},
+                               param_dtype=FLAGS.export_param_dtype)
         print(f"policy checkpoint: {FLAGS.export}")
 
 

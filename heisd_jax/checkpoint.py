@@ -65,11 +65,25 @@ def restore(mngr: ocp.CheckpointManager, abstract_tree, step: int | None = None)
     return out["state"], out["meta"]
 
 
+PARAM_DTYPES = ("float32", "bfloat16")
+
+
 def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionTokenizer, extra: dict | None = None,
-                text_vocab: Sequence[str] | None = None):
-    """Writes a shippable policy checkpoint (parameters and their checksum) at `path`."""
+                text_vocab: Sequence[str] | None = None, param_dtype: str = "float32"):
+    """Writes a shippable policy checkpoint (parameters and their checksum) at `path`, its
+    floating-point parameters stored in `param_dtype` (`PARAM_DTYPES`; bfloat16 halves the
+    file, and `load_policy` gives them back in that dtype, checksum verified)."""
+    if param_dtype not in PARAM_DTYPES:
+        raise ValueError(f"unknown param_dtype {param_dtype!r}; valid: {', '.join(PARAM_DTYPES)}")
+    params = as_param_dtype(params, param_dtype)
     meta = metadata(model_cfg, tok, extra=extra, text_vocab=text_vocab)
-    save(manager(path, max_to_keep=1), 0, params, dict(meta, checksum=checksum(params)))
+    save(manager(path, max_to_keep=1), 0, params, dict(meta, param_dtype=param_dtype, checksum=checksum(params)))
+
+
+def as_param_dtype(tree, param_dtype: str):
+    """`tree` with its floating-point leaves cast to `param_dtype` (other leaves unchanged)."""
+    dt = jax.numpy.dtype(param_dtype)
+    return jax.tree.map(lambda x: x.astype(dt) if jax.numpy.issubdtype(x.dtype, jax.numpy.floating) else x, tree)
 
 
 def _read_meta(path: Path):
@@ -169,7 +183,11 @@ def load_policy(path: str | Path, text_vocab: Sequence[str] | None = None):
         tok = ActionTokenizer.from_dict(meta["tokenizer"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: bad tokenizer metadata: {e}") from e
-    abstract = jax.eval_shape(lambda: vla.init_params(cfg, jax.random.PRNGKey(0)))
+    if meta.get("param_dtype", "float32") not in PARAM_DTYPES:
+        raise CheckpointError(f"checkpoint {path}: parameters stored as {meta['param_dtype']!r}; this version reads "
+                              f"{', '.join(PARAM_DTYPES)}")
+    abstract = jax.eval_shape(lambda: as_param_dtype(vla.init_params(cfg, jax.random.PRNGKey(0)),
+                                                     meta.get("param_dtype", "float32")))
     return _restore_params(path, mngr, step, abstract, meta), cfg, tok, meta
 
 
@@ -183,7 +201,9 @@ def fingerprint(params) -> str:
 
 
 def save_drafter(path: str | Path, dparams, target_cfg: vla.VLAConfig, target_params, extra: dict | None = None):
-    """Writes a drafter checkpoint, tied to its target by the target's fingerprint."""
+    """Writes a drafter checkpoint, tied to its target by the target's fingerprint (of the
+    target's parameters as given: a target re-saved in bfloat16 loads with another
+    fingerprint, so its drafter is saved against the loaded bfloat16 parameters)."""
     meta = dict(format=FORMAT, kind="drafter", config=dataclasses.asdict(target_cfg),
                 target_fingerprint=fingerprint(target_params), **(extra or {}), checksum=checksum(dparams))
     save(manager(path, max_to_keep=1), 0, dparams, meta)

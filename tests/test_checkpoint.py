@@ -1,19 +1,24 @@
 """Checkpoint content checksums and the instruction-vocabulary check: a round trip loads,
 weights changed after saving (same file sizes) are refused as corrupted, a checkpoint of
-another vocabulary is refused where instructions meet it."""
+another vocabulary is refused where instructions meet it; parameters stored in bfloat16 come
+back in bfloat16, checksum verified."""
 
+import dataclasses
 import json
 import logging
 import shutil
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import tiny_models
 from envs import language
 from heisd_jax import checkpoint, drafter, vla, vla_policy
+from heisd_jax.observation import Observation
+from heisd_jax.spec_decode import decode_action
 from heisd_jax.tokenizer import ActionTokenizer
 
 CFG = tiny_models.CFG
@@ -100,3 +105,27 @@ def test_shipped_checkpoints_record_checksums_and_the_env_vocabulary():
     assert meta["checksum"].startswith("sha256:")
     _, dmeta = checkpoint.load_drafter(vla_policy.DEFAULT_DRAFTER, cfg, params)
     assert dmeta["checksum"].startswith("sha256:")
+
+
+def test_bfloat16_round_trip_halves_the_file_and_decodes(saved, tmp_path):
+    _, _, params = saved
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    path = tmp_path / "vla_bf16"
+    checkpoint.save_policy(path, params, CFG, tok, text_vocab=VOCAB, param_dtype="bfloat16")
+    p2, cfg2, _, meta = checkpoint.load_policy(path, text_vocab=VOCAB)
+    assert cfg2 == CFG and meta["param_dtype"] == "bfloat16"
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p2)):
+        assert b.dtype == jnp.bfloat16
+        np.testing.assert_array_equal(np.asarray(a.astype(jnp.bfloat16)), np.asarray(b))
+    assert meta["checksum"] == checkpoint.checksum(p2)  # verified over the bytes as stored
+
+    def size(p):
+        return sum(f.stat().st_size for f in (p / "0" / "state").rglob("*") if f.is_file())
+    assert size(path) < 0.6 * size(saved[0])
+    bf16 = dataclasses.replace(CFG, dtype="bfloat16")
+    obs = Observation(image=jnp.zeros((2, *CFG.image_shape), jnp.uint8), instruction=jnp.ones((2, CFG.text_len), jnp.int32),
+                      proprio=jnp.zeros((2, CFG.proprio_dim)))
+    tokens, stats = decode_action(p2, bf16, obs)
+    assert tokens.shape == (2, 7) and not np.asarray(stats["invalid"]).any()
+    with pytest.raises(ValueError, match="unknown param_dtype 'float16'; valid: float32, bfloat16"):
+        checkpoint.save_policy(tmp_path / "x", params, CFG, tok, text_vocab=VOCAB, param_dtype="float16")
