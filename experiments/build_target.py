@@ -60,6 +60,7 @@ flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every tr
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
+flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
 flags.DEFINE_integer("train_devices", 1, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
@@ -134,7 +135,7 @@ def plan(w: Path) -> list[Stage]:
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
-             f"--devices={FLAGS.train_devices}"]
+             f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
@@ -184,7 +185,7 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
                                         f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
                                         f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
-                                        "--log_every=500", "--ckpt_every=1000", f"--devices={FLAGS.train_devices}",
+                                        "--log_every=500", "--ckpt_every=1000", f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}",
                                         f"--export={w / 'drafter'}"],
                             w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
     source = rollouts if FLAGS.datastore_source == "rollouts" else w / "demos"
@@ -211,6 +212,8 @@ def _settings() -> dict:
         out["datastore_source"] = FLAGS.datastore_source
     if FLAGS.label_sigma_bins != 2.0:  # likewise
         out["label_sigma_bins"] = FLAGS.label_sigma_bins
+    if FLAGS.seed:  # likewise
+        out["seed"] = FLAGS.seed
     return out
 
 

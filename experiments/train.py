@@ -63,6 +63,8 @@ flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
 flags.DEFINE_integer("devices", 1, "Local devices to train over, data parallel (0: all of them); --batch_size must "
                      "be a multiple.")
+flags.DEFINE_integer("seed", 0, "Fixes the initialisation and the minibatch order: the same seed and data give the "
+                     "same run.")
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
@@ -236,7 +238,7 @@ def main(argv):
                              f"multiple of {n}")
         cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
-                                image_shift=FLAGS.image_shift)
+                                image_shift=FLAGS.image_shift, seed=FLAGS.seed)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)
