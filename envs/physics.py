@@ -56,7 +56,7 @@ class PhysicsConfig:
     # > 0: MJX's constraint solver takes only this many contacts per physics step, the deepest
     # (its max_contact_points), instead of every candidate slot (184, most of them inactive:
     # 745 constraint rows against 137 at 32); 0: every slot. The experts' episodes of every task
-    # have at most 32 active contacts in one env (`experiments.contact_pairs`): none is dropped
+    # have at most 32 active contacts in one env (`experiments.studies.contact_pairs`): none is dropped
     # there, but the cap has no margin.
     max_contacts: int = 32
     # > 0: MJX's narrow phase tests only this many geom pairs per collision function (box-box: 19

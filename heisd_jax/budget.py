@@ -38,7 +38,7 @@ A margin: a drafting option is chosen only if predicted `margin` (10%) faster th
 table's own error is of that size: at batch 16 on an H200, without a margin, the chooser
 picked drafting on about half the steps although drafting measured 7-8% slower than AR in
 the same replays, and two calibrations of AR's decode at batch 1 differed by 12%. The
-price: at batch 1 AR runs on a quarter of the steps. (`experiments/budget_sim.py` replays
+price: at batch 1 AR runs on a quarter of the steps. (`experiments/studies/budget_sim.py` replays
 the chooser on measured cost tables.)
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
@@ -244,7 +244,7 @@ def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rou
              any_retrieval: bool = True) -> tuple[np.ndarray, float]:
     """The chooser over `steps` steps where option o always needs true_rounds[o] draft rounds
     and costs what the table predicts for them: (runs per option, total ms). The arithmetic
-    behind the retry bound (tests/test_budget.py, experiments/budget_sim.py), on the host."""
+    behind the retry bound (tests/test_budget.py, experiments/studies/budget_sim.py), on the host."""
     true_ms = np.asarray(costs.fixed_ms) + np.asarray(true_rounds) * np.asarray(costs.round_ms)
     state, spent = init_state(opts), 0.0
     for _ in range(steps):

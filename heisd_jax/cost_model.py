@@ -8,7 +8,7 @@ jitted call (which a real decode pays once per action, not per pass) is not coun
 pass; the median over back-to-back pairs.
 
 An option's cost is `fixed + rounds x round` (budget.Costs). A draft round can cost more inside
-the decode's `while_loop` than alone (experiments/bench_round.py), so for a tree
+the decode's `while_loop` than alone (experiments/studies/bench_round.py), so for a tree
 with a retrieval option both are read off whole decodes: the decode with candidates equal
 to the target's own greedy action (accepted whole: zero rounds) is the fixed part, and the
 slope to the decode on random inputs (which need several rounds) is the round's cost in

@@ -6,7 +6,7 @@
   compiled program, the difference per run; what the cost model's tables hold (a decode
   pays one dispatch per action, not per pass);
 - per kernel (`trace_calls`, `kernel_summary`): a `jax.profiler` trace summarised per
-  device timeline (experiments/trace_decode.py, experiments/profile.py); `write_hlo` keeps
+  device timeline (experiments/studies/trace_decode.py, experiments/profile.py); `write_hlo` keeps
   the optimised HLO that names those kernels (its fusions).
 """
 

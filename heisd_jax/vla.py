@@ -15,7 +15,7 @@ rows can accept different numbers of tokens. A pass never writes the cache: atte
 reads the committed slots and the pass's own block (`Block`) side by side, and `commit`
 scatters only the kept tokens' keys/values into the cache, in place. (Writing the block
 into the cache inside the pass makes XLA copy the whole cache on every pass: at batch 1,024
-on an H200 that is half of AR's time, `experiments/trace_decode.py` shows it.) Vocabulary: text
+on an H200 that is half of AR's time, `experiments/studies/trace_decode.py` shows it.) Vocabulary: text
 ids [0, text_vocab), action ids [text_vocab, text_vocab + 256).
 
 Matrix products of a float32 model run in full float32 (`VLAConfig.matmul_precision`), so the

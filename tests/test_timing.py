@@ -1,4 +1,4 @@
-"""Per-kernel trace summaries (heisd_jax.timing, behind experiments/trace_decode.py): a traced
+"""Per-kernel trace summaries (heisd_jax.timing, behind experiments/studies/trace_decode.py): a traced
 jitted call shows up on a device timeline, with its time split per call."""
 
 import gzip

@@ -3,7 +3,7 @@
 to <datastore>/boundary.json; `heisd_jax.methods.load_calibration` reads it back).
 
 `closed_loop_steps` turns a recorded closed-loop rollout into the same inputs (the
-draft-source analysis, `experiments.draft_sources`). `measure` decodes every step twice with a heisd configuration: retrieval first
+draft-source analysis, `experiments.studies.draft_sources`). `measure` decodes every step twice with a heisd configuration: retrieval first
 (the candidates verified, drafter rounds for what they leave) and drafter SD alone, and
 records target passes per action (TPA), the retrieval draft's accepted length and the
 nearest key's distance, beside the step's fused kinematic metric. `calibrate` turns those

@@ -2,7 +2,7 @@
 alone and vmapped over --batch envs, timed on states the scripted expert reached after
 --warmup control steps of an evaluation rollout (mid-episode: objects grasped, contacts live).
 
-  python -m experiments.physics_stages --batch=4096 [--physics=max_contacts=0]
+  python -m experiments.studies.physics_stages --batch=4096 [--physics=max_contacts=0]
 
 Stages are timed apart, so they do not add up to the whole step exactly (each is its own
 program, fused on its own). Also times the whole step with MJX's solver loop as a while loop

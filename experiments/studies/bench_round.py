@@ -1,6 +1,6 @@
 """What one draft-verify round costs alone and inside the decode loop, in one run.
 
-  python -m experiments.bench_round --batch_sizes=1,16 --trees=4x2x8,8x4x32
+  python -m experiments.studies.bench_round --batch_sizes=1,16 --trees=4x2x8,8x4x32
 
 With the shipped target and drafter and random observations, per batch size and tree (all
 in-graph costs, `timing.in_graph_ms`: compiled once, median of back-to-back differences):

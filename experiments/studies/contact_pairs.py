@@ -2,7 +2,7 @@
 box-mesh, ...), how far down a touching geom pair ranks when the pairs are ordered as MJX's
 broad phase orders them, by the gap between their bounding spheres.
 
-  python -m experiments.contact_pairs --suites=all --episodes=4 --out=results/contact_pairs.json
+  python -m experiments.studies.contact_pairs --suites=all --episodes=4 --out=results/contact_pairs.json
 
 Runs the scripted expert on --episodes evaluation states of every task of --suites, every
 contact and every pair simulated (`max_contacts=0,max_geom_pairs=0`, the rest of the physics

@@ -1,7 +1,7 @@
 """Where a VLA's episodes go wrong: the expert watches every closed-loop step and says which
 phase of the task the state is in.
 
-  python -m experiments.failure_modes --suites=all --episodes=10 --num_envs=400 \
+  python -m experiments.studies.failure_modes --suites=all --episodes=10 --num_envs=400 \
       --out=results/failure_modes.json
 
 Runs the target (greedy AR) on the fixed evaluation initial states while the scripted expert,

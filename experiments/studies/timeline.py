@@ -1,7 +1,7 @@
 """One episode's timeline: end-effector speed, the kinematic metric and the decoding mode
 HeiSD chose at every control step (retrieval verified, retrieval skipped, drafter).
 
-  python -m experiments.timeline --task=pick_red_block --method=heisd \
+  python -m experiments.studies.timeline --task=pick_red_block --method=heisd \
       --settings=top_k=4,depth=2,total_tokens=8 --out=results/timeline.png
 
 Runs the episode (fixed evaluation initial state --episode of --task) in closed loop with

@@ -1,6 +1,6 @@
 """How confident and how batch-invariant the target is on its own closed-loop states.
 
-  python -m experiments.target_confidence --suites=all --envs=40 --steps=60 --out=results/confidence.json
+  python -m experiments.studies.target_confidence --suites=all --envs=40 --steps=60 --out=results/confidence.json
 
 Records greedy-AR rollouts of the target (--envs envs on the fixed evaluation initial states,
 --steps control steps), then on every state where the episode still runs:
@@ -95,7 +95,7 @@ def main(argv):
         "batch1_vs_batch_states": len(same),
         "batch1_vs_batch_identical_actions": round(float(np.mean(same)), 4),
     }
-    record = {**results_io.provenance("python -m experiments.target_confidence " + " ".join(
+    record = {**results_io.provenance("python -m experiments.studies.target_confidence " + " ".join(
                   f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states",
                                                           "matmul_precision"))),
               "batch": n, "summary": summary}

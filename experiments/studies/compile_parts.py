@@ -1,7 +1,7 @@
 """Where a rollout's compile goes: each part of an evaluation's program jitted alone, vmapped
 over --num_envs envs, and traced, lowered and compiled with JAX's persistent cache off.
 
-  python -m experiments.compile_parts --method=expert --num_envs=8 [--out=compile_parts.json]
+  python -m experiments.studies.compile_parts --method=expert --num_envs=8 [--out=compile_parts.json]
 
 The parts: the env's reset (`initial_data`, the layout sampling inside it, `physics.poses`), its
 control step (IK, one physics step, the kinematics at the new positions, the goal checks), MJX's

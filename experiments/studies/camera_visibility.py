@@ -3,7 +3,7 @@ target's views rendered every --every control steps, and per view and geom the s
 those states in which some pixel shows the geom. Geoms a view never shows are what a
 ray-cast scene of only what that view can see would leave out (issue: the camera's share).
 
-  python -m experiments.camera_visibility --envs=40 --steps=200 --every=20 [--out=camera_visibility_cpu.json]
+  python -m experiments.studies.camera_visibility --envs=40 --steps=200 --every=20 [--out=camera_visibility_cpu.json]
 """
 
 from __future__ import annotations

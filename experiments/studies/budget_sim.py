@@ -3,7 +3,7 @@ cost table (no model runs): every speculative option is assumed to need --rounds
 (for ar+retrieval: single-token passes) and to cost what the table predicts for them; AR
 costs its measured decode.
 
-  python -m experiments.budget_sim --tables=experiments/results/costs/cost_table_prev_target_b256_h200.json \
+  python -m experiments.studies.budget_sim --tables=experiments/results/costs/cost_table_prev_target_b256_h200.json \
       --steps=40,420 --rounds=6
 
 Prints, per table and number of steps, the time over always running AR for the chooser of

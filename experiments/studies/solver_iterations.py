@@ -1,7 +1,7 @@
 """How many iterations MJX's constraint solver takes under the scripted expert, per solver
 tolerance: what `PhysicsConfig.tolerance` and `solver_iterations` trade.
 
-  python -m experiments.solver_iterations --suites=all --episodes=2 --every=5 --out=results/solver_iterations.json
+  python -m experiments.studies.solver_iterations --suites=all --episodes=2 --every=5 --out=results/solver_iterations.json
 
 Runs the expert on --episodes evaluation states of every task of --suites under the default
 physics, keeps the state of every live env every --every control steps, and counts on each

@@ -1,6 +1,6 @@
 """Where one decode call's device time goes, per kernel, at large batch sizes.
 
-  python -m experiments.trace_decode --batch_sizes=256,1024 --tree=4x2x8 --trace_dir=/tmp/trace
+  python -m experiments.studies.trace_decode --batch_sizes=256,1024 --tree=4x2x8 --trace_dir=/tmp/trace
 
 With the shipped target and drafter on random observations (`cost_model.synthetic_inputs`),
 per batch size, each of these jitted calls is timed (median wall time of --reps calls,

@@ -2,7 +2,7 @@
 target's own closed-loop states, per phase of the task and per kinematic-metric bin (the
 paper's "complementary advantages" analysis).
 
-  python -m experiments.draft_sources --suites=all --envs=256 --steps=200 --out=results/draft_sources.json
+  python -m experiments.studies.draft_sources --suites=all --envs=256 --steps=200 --out=results/draft_sources.json
 
 Runs the target (greedy AR) on the fixed evaluation initial states while the scripted expert
 watches every step without acting and names the phase the state is in (approach, descend,
@@ -80,7 +80,7 @@ def main(argv):
     _, by_metric = boundary.metric_table(measured, FLAGS.bins)
     _print("phase", [r["group"] for r in by_phase], by_phase)
     _print("metric bin", [f"{r['metric_lo']:.2f}-{r['metric_hi']:.2f}" for r in by_metric], by_metric)
-    record = {**results_io.provenance("python -m experiments.draft_sources " + " ".join(
+    record = {**results_io.provenance("python -m experiments.studies.draft_sources " + " ".join(
                   f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "drafter", "datastore", "suites", "envs",
                                                           "steps", "settings", "bins"))),
               "steps": len(phase), "by_phase": by_phase, "by_metric": by_metric,

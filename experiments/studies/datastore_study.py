@@ -2,7 +2,7 @@
 against datastores built from the target's own closed-loop rollouts, with other values and
 other keys (issue "HeiSD on a target that succeeds", lever "datastore keys and contents").
 
-  python -m experiments.datastore_study --suites=spatial --store_envs=80 --query_envs=40 --steps=150 \
+  python -m experiments.studies.datastore_study --suites=spatial --store_envs=80 --query_envs=40 --steps=150 \
       --out=results/datastore_study.json
 
 Records the target (greedy AR) on `--store_envs` training initial states (the datastore's

@@ -2,9 +2,9 @@
 the arm's joints drift apart (float64, CPU), what a physics step costs in MJX, and whether the
 scripted expert still succeeds.
 
-  python -m experiments.physics_agreement --measure=agreement --options=all --controls=jump,expert
-  python -m experiments.physics_agreement --measure=timing --options=all --time_batch=64
-  python -m experiments.physics_agreement --measure=success --options=current,clamp_aware --success_episodes=3
+  python -m experiments.studies.physics_agreement --measure=agreement --options=all --controls=jump,expert
+  python -m experiments.studies.physics_agreement --measure=timing --options=all --time_batch=64
+  python -m experiments.studies.physics_agreement --measure=success --options=current,clamp_aware --success_episodes=3
 
 Options: `current` (the shipped scene: implicitfast, servo forcerange, MJX's own implicit
 rule), `euler`, `rk4`, `unlimited` (implicitfast without forcerange), `clamp_aware`

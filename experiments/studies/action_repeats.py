@@ -2,7 +2,7 @@
 recent actions can offer as retrieval candidates, and what repeating the last action without
 a target pass (a verify-skip on the recent candidate) would cost.
 
-  python -m experiments.action_repeats --suites=all --record_envs=16 --steps=100
+  python -m experiments.studies.action_repeats --suites=all --record_envs=16 --steps=100
 
 Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, --record_envs,
 --steps, --checkpoint), then reports, over steps where the episode runs:
@@ -107,7 +107,7 @@ def main(argv):
         print(f"  n_confirm {r['n_confirm']} k_skip {r['k_skip']}: {r['skipped']:.3f} of steps skipped, "
               f"{r['outside_tolerance']:.3f} of them outside the tolerance")
     if FLAGS.out:
-        command = "python -m experiments.action_repeats " + " ".join(
+        command = "python -m experiments.studies.action_repeats " + " ".join(
             f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "record_envs", "steps"))
         Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(command), **m})
