@@ -39,13 +39,11 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import jax
 import jax.numpy as jnp
 import numpy as np
-from flax import struct
 
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax.observation import Observation
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, methods, results_io, retrieval, scale, vla, vla_policy
+from heisd_jax import checkpoint, methods, replay, results_io, retrieval, scale, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -71,46 +69,6 @@ flags.DEFINE_string("out", "", "JSON output path.")
 flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
 flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --out JSON files (e.g. two runs of "
                   "other batch sizes) into --plot.")
-
-
-@struct.dataclass
-class _Kin:
-    lin_vel: jnp.ndarray
-    ang_vel: jnp.ndarray
-    lin_acc: jnp.ndarray
-    gripper_vel: jnp.ndarray
-
-
-@struct.dataclass
-class _Info:
-    task_id: jnp.ndarray
-
-
-@struct.dataclass
-class ReplayState:
-    """The fields of `envs.env.EnvState` that decoding policies read."""
-    obs: Observation
-    kin: _Kin
-    info: _Info
-    step: jnp.ndarray
-
-
-def record(env: TabletopEnv, n_envs: int, n_steps: int):
-    """[T, B] replay states and AR's recorded actions [T, B, 7] and done flags [T, B]."""
-    policy = methods.make_policy(FLAGS.record_method, env, checkpoint=FLAGS.checkpoint)
-    tids, keys = env.cycling_eval_starts(n_envs)
-    fn = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p),
-                                                          k, t, n_steps))
-    final, traj = fn(policy.params, keys, jnp.asarray(tids, jnp.int32))
-    t = n_steps
-    states = ReplayState(
-        obs=Observation(image=traj["image"], instruction=jnp.broadcast_to(final.obs.instruction, (t,) + final.obs.instruction.shape),
-                 proprio=traj["proprio"]),
-        kin=_Kin(lin_vel=traj["ee_vel"], ang_vel=traj["ee_ang_vel"], lin_acc=traj["ee_acc"],
-                 gripper_vel=traj["gripper_vel"]),
-        info=_Info(task_id=jnp.broadcast_to(jnp.asarray(tids, jnp.int32), (t, n_envs))),
-        step=jnp.broadcast_to(jnp.arange(t)[:, None], (t, n_envs)))
-    return states, traj["action"], traj["done"]
 
 
 def common_settings() -> dict:
@@ -199,7 +157,9 @@ def main(argv):
     method_list = [(n, {**common, **s}) for n, s in [("ar", {})] + [m for m in method_list if m != ("ar", {})]]
     env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
     t0 = time.perf_counter()
-    states, ar_actions, done = record(env, FLAGS.record_envs, FLAGS.steps)
+    states, ar_actions, done = replay.record(env, methods.make_policy(FLAGS.record_method, env,
+                                                                      checkpoint=FLAGS.checkpoint),
+                                             FLAGS.record_envs, FLAGS.steps)
     print(f"recorded {FLAGS.record_envs} envs x {FLAGS.steps} steps of {FLAGS.record_method} in "
           f"{time.perf_counter() - t0:.0f}s (compile included) on {jax.devices()[0].device_kind}", flush=True)
     _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)

@@ -4,8 +4,8 @@ a target pass (a verify-skip on the recent candidate) would cost.
 
   python -m experiments.studies.action_repeats --suites=all --record_envs=16 --steps=100
 
-Records AR's closed-loop actions as `bench_methods` does (its flags: --suites, --record_envs,
---steps, --checkpoint), then reports, over steps where the episode runs:
+Records AR's closed-loop actions as `bench_methods` does (`heisd_jax.replay.record`), then
+reports, over steps where the episode runs:
   - per dimension, the bin distance between consecutive actions;
   - how often the previous action, as a draft, would be accepted whole by HeiSD's
     sequence-wise rule (`acceptance.seq_relaxed_length`, the paper's r_max 15 / r_seq 42) against the
@@ -29,11 +29,15 @@ import numpy as np
 
 from envs import language, tasks as tasks_lib
 from envs.env import TabletopEnv
-from experiments import bench_methods  # record(), and its flags: suites, record_envs, steps, checkpoint, out
-from heisd_jax import acceptance, checkpoint, hybrid, methods, results_io
+from heisd_jax import acceptance, checkpoint, hybrid, methods, replay, results_io
 from experiments import cli
 
 FLAGS = flags.FLAGS
+flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
+flags.DEFINE_integer("record_envs", 16, "Recorded envs.")
+flags.DEFINE_integer("steps", 100, "Recorded control steps per env.")
+cli.define_paths("checkpoint")
+flags.DEFINE_string("out", "", "JSON output path.")
 
 
 def whole(draft: np.ndarray, target: np.ndarray) -> np.ndarray:
@@ -89,7 +93,8 @@ def measure(bins: np.ndarray, live: np.ndarray) -> dict:
 def main(argv):
     del argv
     env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
-    _, actions, done = bench_methods.record(env, FLAGS.record_envs, FLAGS.steps)
+    _, actions, done = replay.record(env, methods.make_policy("ar", env, checkpoint=FLAGS.checkpoint),
+                                     FLAGS.record_envs, FLAGS.steps)
     _, _, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     bins = np.asarray(tok.to_bins(np.asarray(actions))).astype(np.int32)  # [T, B, 7]
     m = measure(bins, ~np.asarray(done))

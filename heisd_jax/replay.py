@@ -1,0 +1,60 @@
+"""Closed-loop steps recorded once, for replaying decoders on them open loop
+(experiments.bench_methods times every method on the same inputs; studies.action_repeats
+measures how actions repeat).
+
+`record` rolls a policy out from the fixed evaluation initial states and keeps, per control
+step and env, what a decoding policy reads (`ReplayState`: observation, end-effector
+kinematics, task, step), the action taken and whether the episode had ended.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from envs import rollout
+from envs.env import TabletopEnv
+from heisd_jax.observation import Observation
+
+
+@struct.dataclass
+class ReplayKinematics:
+    lin_vel: jnp.ndarray
+    ang_vel: jnp.ndarray
+    lin_acc: jnp.ndarray
+    gripper_vel: jnp.ndarray
+
+
+@struct.dataclass
+class ReplayInfo:
+    task_id: jnp.ndarray
+
+
+@struct.dataclass
+class ReplayState:
+    """The fields of `envs.env.EnvState` that decoding policies read."""
+    obs: Observation
+    kin: ReplayKinematics
+    info: ReplayInfo
+    step: jnp.ndarray
+
+
+def record(env: TabletopEnv, policy: rollout.Policy, n_envs: int, n_steps: int):
+    """`policy` run for n_steps control steps in n_envs envs (the evaluation initial states,
+    cycling over the tasks): replay states [T, B], the actions taken [T, B, 7] and the
+    done flags [T, B]."""
+    tids, keys = env.cycling_eval_starts(n_envs)
+    fn = jax.jit(lambda p, k, t: rollout.record_episodes(env, dataclasses.replace(policy, params=p), k, t, n_steps))
+    final, traj = fn(policy.params, keys, jnp.asarray(tids, jnp.int32))
+    t = n_steps
+    states = ReplayState(
+        obs=Observation(image=traj["image"], proprio=traj["proprio"],
+                        instruction=jnp.broadcast_to(final.obs.instruction, (t,) + final.obs.instruction.shape)),
+        kin=ReplayKinematics(lin_vel=traj["ee_vel"], ang_vel=traj["ee_ang_vel"], lin_acc=traj["ee_acc"],
+                             gripper_vel=traj["gripper_vel"]),
+        info=ReplayInfo(task_id=jnp.broadcast_to(jnp.asarray(tids, jnp.int32), (t, n_envs))),
+        step=jnp.broadcast_to(jnp.arange(t)[:, None], (t, n_envs)))
+    return states, traj["action"], traj["done"]
