@@ -37,7 +37,8 @@ class Drafter(nn.Module):
         """emb, feat [B, T, D] -> predicted features [B, T, D], the entries' (k, v)."""
         x = nn.Dense(self.cfg.d_model, use_bias=True, dtype=self.cfg.dtype, name="fc")(
             jnp.concatenate([emb, feat.astype(emb.dtype)], -1))
-        x, (k, v) = vla.DecoderBlock(self.cfg, name="block")(x, layer_k, layer_v, positions, cache_mask, block_mask)
+        x, (k, v) = vla.DecoderBlock(self.cfg, name="block")(x, layer_k, layer_v, vla.rotary_angles(self.cfg, positions),
+                                                   cache_mask, block_mask)
         return nn.RMSNorm(epsilon=self.cfg.norm_eps, dtype=self.cfg.dtype, name="norm")(x), (k, v)
 
 

@@ -262,12 +262,23 @@ def init_cache(cfg: VLAConfig, batch: int) -> KVCache:
                    key_mask=jnp.zeros((batch, cfg.cache_slots), bool), length=jnp.zeros((batch,), jnp.int32))
 
 
-def rope(x: jnp.ndarray, positions: jnp.ndarray, base: float) -> jnp.ndarray:
-    """Rotary embedding. x [B, T, H, Dh], positions [B, T]."""
-    half = x.shape[-1] // 2
-    freq = 1.0 / (base ** (jnp.arange(half, dtype=jnp.float32) / half))
+def rotary_angles(cfg: VLAConfig, positions: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """(cos, sin) [B, T, 1, Dh/2] float32 of tokens at positions [B, T]: computed once per
+    pass and shared by every layer (computed inside each layer, XLA fuses the sines into
+    each layer's attention products and recomputes them there). Rotary positions count
+    real tokens only: a scaled-up prompt's pads sit at slots 0..image_pad-1."""
+    if cfg.image_pad:
+        positions = jnp.maximum(positions - cfg.image_pad, 0)
+    half = cfg.d_model // cfg.n_heads // 2
+    freq = 1.0 / (cfg.rope_base ** (jnp.arange(half, dtype=jnp.float32) / half))
     ang = positions[..., None].astype(jnp.float32) * freq  # [B, T, half]
-    cos, sin = jnp.cos(ang)[:, :, None], jnp.sin(ang)[:, :, None]
+    return jnp.cos(ang)[:, :, None], jnp.sin(ang)[:, :, None]
+
+
+def rope(x: jnp.ndarray, rotary: tuple[jnp.ndarray, jnp.ndarray]) -> jnp.ndarray:
+    """Rotary embedding of x [B, T, H, Dh] by `rotary_angles`' (cos, sin)."""
+    cos, sin = rotary
+    half = x.shape[-1] // 2
     x1, x2 = x[..., :half].astype(jnp.float32), x[..., half:].astype(jnp.float32)
     return jnp.concatenate([x1 * cos - x2 * sin, x1 * sin + x2 * cos], -1).astype(x.dtype)
 
@@ -290,18 +301,16 @@ class DecoderBlock(nn.Module):
     cfg: VLAConfig
 
     @nn.compact
-    def __call__(self, x, layer_k, layer_v, positions, cache_mask, block_mask):
-        # x [B, T, D]; layer_k/v [B, S, H, Dh] or None (no cache); positions [B, T];
+    def __call__(self, x, layer_k, layer_v, rotary, cache_mask, block_mask):
+        # x [B, T, D]; layer_k/v [B, S, H, Dh] or None (no cache); rotary: `rotary_angles`;
         # cache_mask [B, T, S] (which cache slots each token sees; None without a cache);
         # block_mask [B, T, T] (which of the block's tokens each sees, itself included).
         cfg = self.cfg
         b, t, d = x.shape
         hd = d // cfg.n_heads
-        if cfg.image_pad:  # rotary positions count real tokens only: the pads sit at slots 0..pad-1
-            positions = jnp.maximum(positions - cfg.image_pad, 0)
         h = nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype, name="attn_norm")(x)
         qkv = nn.Dense(3 * d, use_bias=False, dtype=cfg.dtype, name="qkv")(h).reshape(b, t, 3, cfg.n_heads, hd)
-        q, k, v = rope(qkv[:, :, 0], positions, cfg.rope_base), rope(qkv[:, :, 1], positions, cfg.rope_base), qkv[:, :, 2]
+        q, k, v = rope(qkv[:, :, 0], rotary), rope(qkv[:, :, 1], rotary), qkv[:, :, 2]
         k, v = k.astype(cfg.dtype), v.astype(cfg.dtype)
         scale = 1.0 / jnp.sqrt(hd)
         logits = jnp.einsum("bthd,bshd->bhts", q, k).astype(jnp.float32) * scale
@@ -397,15 +406,16 @@ class VLA(nn.Module):
         `logits_from` on: a prefill needs only its last prompt token's) and the tokens'
         keys/values [L, B, T, H, Dh]."""
         ck, cv = (None, None) if cache is None else (cache.k, cache.v)
+        rotary = rotary_angles(self.cfg, positions)
         if self.cfg.per_layer:
             kv = []
             for i, layer in enumerate(self.layers):
-                x, out = layer(x, None if ck is None else ck[i], None if cv is None else cv[i], positions, cache_mask,
+                x, out = layer(x, None if ck is None else ck[i], None if cv is None else cv[i], rotary, cache_mask,
                                block_mask)
                 kv.append(out)
             k, v = jnp.stack([a for a, _ in kv]), jnp.stack([b for _, b in kv])
         else:
-            x, (k, v) = self.blocks(x, ck, cv, positions, cache_mask, block_mask)
+            x, (k, v) = self.blocks(x, ck, cv, rotary, cache_mask, block_mask)
         hidden = self.final_norm(x)
         return hidden, self.head(hidden[:, logits_from:]).astype(jnp.float32), (k, v)
 
