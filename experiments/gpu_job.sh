@@ -4,6 +4,7 @@
 #   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
 #   bash experiments/gpu_job.sh start -- CMD [ARGS...] [-- CMD ...]  # the same in the background
 #   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
+#                                         (SECONDS is capped to end 40 s before the call's 600 s limit)
 #   bash experiments/gpu_job.sh stop [PATH...]                        # end the job, report, pack results
 #
 # GPU_JOB_STEP_TIMEOUT=SECONDS (in start's environment, or the foreground's) ends any one
@@ -87,7 +88,12 @@ case "${1:-}" in
     pid=$(cat "$WORK/pid")
     if [ "$1" = poll ]; then
       [[ "${2:-}" =~ ^[0-9]+$ ]] || usage
-      end=$(( $(date +%s) + $2 )); shift 2
+      # The device tool ends a call at GPU_JOB_CALL_LIMIT (600) seconds, and a call cut off
+      # brings nothing back: wait at most until 40 s before that, counted from the start of
+      # the calling shell (a `start; poll` pair in one call spends start's time first).
+      wait=$2 room=$(( ${GPU_JOB_CALL_LIMIT:-600} - 40 - $(ps -o etimes= -p $PPID 2>/dev/null || echo 0) ))
+      [ "$wait" -gt "$room" ] && { wait=$(( room > 0 ? room : 0 )); echo "poll: waiting ${wait}s (the call's limit)"; }
+      end=$(( $(date +%s) + wait )); shift 2
       while [ "$(date +%s)" -lt "$end" ] && kill -0 "$pid" 2>/dev/null; do sleep 10; done
     else
       shift
