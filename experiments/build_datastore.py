@@ -53,7 +53,7 @@ def main(argv):
     spec = retrieval.KeySpec(history=FLAGS.history, pos_scale=FLAGS.pos_scale)
     try:
         n = len(demos.DemoDataset(FLAGS.demos))
-        keep, held = datastore.split_episodes(n, FLAGS.holdout)
+        keep, held = datastore.strided_episode_split(n, FLAGS.holdout)
         executed = datastore.executed_actions(params, cfg, tok, FLAGS.demos, keep) if FLAGS.values == "rollout" else None
         store = datastore.build_from_demos(FLAGS.demos, spec, tok, keep, actions=executed)
         if FLAGS.values == "target":

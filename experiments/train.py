@@ -94,7 +94,7 @@ def _tables():
     """(train, validation) step tables on the host, and the (image size, views) of the data."""
     parts, val_host = [], None
     for i, path in enumerate(FLAGS.demos):
-        train_eps, val_eps = data.split_episodes(path, FLAGS.holdout)
+        train_eps, val_eps = data.random_episode_split(path, FLAGS.holdout)
         parts.append(data.load_steps(path, train_eps))
         if i == 0:
             val_host = data.load_steps(path, val_eps) if val_eps else parts[0]

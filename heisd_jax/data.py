@@ -46,8 +46,10 @@ def load_steps(path: str, episodes: list[int] | None = None) -> StepTable:
     return StepTable(*(np.concatenate(cols[k]) for k in ("image", "proprio", "instruction", "action")))
 
 
-def split_episodes(path: str, holdout: float, seed: int = 0) -> tuple[list[int], list[int]]:
-    """Episode indices for training and held-out evaluation (by episode, not by step)."""
+def random_episode_split(path: str, holdout: float, seed: int = 0) -> tuple[list[int], list[int]]:
+    """(training, held-out) episode indices: a random `holdout` share of the episodes, chosen
+    by `seed` (split by episode, not by step; `offline.datastore.strided_episode_split` holds out
+    every n-th episode instead)."""
     n = len(demos.DemoDataset(path))
     order = np.random.default_rng(seed).permutation(n)
     k = int(round(n * holdout))

@@ -105,11 +105,11 @@ def test_build_from_demos_keys_each_step_by_its_history(tmp_path):
 
 
 def test_holdout_split_is_disjoint_and_covers_every_episode():
-    keep, held = datastore.split_episodes(25, 0.1)
+    keep, held = datastore.strided_episode_split(25, 0.1)
     assert sorted(keep + held) == list(range(25)) and not set(keep) & set(held) and held == [9, 19]
-    assert datastore.split_episodes(5, 0.0) == ([0, 1, 2, 3, 4], [])
+    assert datastore.strided_episode_split(5, 0.0) == ([0, 1, 2, 3, 4], [])
     with pytest.raises(ValueError, match="holdout"):
-        datastore.split_episodes(5, 1.0)
+        datastore.strided_episode_split(5, 1.0)
 
 
 def test_with_values_replaces_the_values_and_refuses_a_mismatch(store):

@@ -65,7 +65,7 @@ def test_soft_bin_targets_are_distributions_with_the_label_as_mode():
 
 
 def test_split_is_by_episode_and_disjoint(dataset):
-    tr, va = data.split_episodes(str(dataset), 0.2)
+    tr, va = data.random_episode_split(str(dataset), 0.2)
     assert len(va) == 4 and not set(tr) & set(va) and sorted(tr + va) == list(range(20))
 
 

@@ -53,7 +53,7 @@ def subsample(store: Datastore, stride: int) -> Datastore:
     return jax.tree.map(lambda x: x[::stride], store)
 
 
-def split_episodes(n_episodes: int, holdout: float) -> tuple[list[int], list[int]]:
+def strided_episode_split(n_episodes: int, holdout: float) -> tuple[list[int], list[int]]:
     """(datastore episodes, held-out episodes): every round(1/holdout)-th episode is held
     out (for calibrating the boundary on trajectories the datastore has not seen)."""
     if not 0 <= holdout < 1:
