@@ -84,7 +84,7 @@ def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: v
     m = k * d
     root_pos = dcache.length  # [B]
     slots = jnp.arange(cfg.cache_slots)
-    prefix = dcache.key_mask & (slots[None] < dcache.length[:, None])  # [B, S]
+    prefix = vla.committed_slots(dcache)  # [B, S]
 
     logp = jax.nn.log_softmax(vla.action_head(tparams, cfg, root_feat))  # [B, 256]
     score, bins = jax.lax.top_k(logp, k)  # level 1

@@ -256,6 +256,13 @@ def mark_invalid(cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, stats: d
             {**stats, "invalid": (~valid).astype(jnp.float32)})
 
 
+def committed_slots(cache: KVCache) -> jnp.ndarray:
+    """[B, S] bool: the slots a query may attend to, those with their key mask on and below
+    the row's length (a slot past the length holds a discarded draft's leftovers)."""
+    slots = jnp.arange(cache.key_mask.shape[1])
+    return cache.key_mask & (slots[None] < cache.length[:, None])
+
+
 def init_cache(cfg: VLAConfig, batch: int) -> KVCache:
     shape = (cfg.n_layers, batch, cfg.cache_slots, cfg.n_heads, cfg.d_model // cfg.n_heads)
     return KVCache(k=jnp.zeros(shape, cfg.dtype), v=jnp.zeros(shape, cfg.dtype),
@@ -536,8 +543,7 @@ def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: j
     """
     model = VLA(cfg)
     b, t = tokens.shape
-    slots = jnp.arange(cfg.cache_slots)
-    committed = cache.key_mask & (slots[None, :] < cache.length[:, None])  # [B, S]
+    committed = committed_slots(cache)  # [B, S]
     positions = cache.length[:, None] + depth
 
     def fn(m):
@@ -562,8 +568,7 @@ def commit(cache: KVCache, block: Block, src: jnp.ndarray, n: jnp.ndarray) -> KV
     v = cache.v.at[:, rows, dst].set(take(block.v), mode="drop")
     slots = jnp.arange(cache.key_mask.shape[1])
     new_len = cache.length + n
-    key_mask = (cache.key_mask & (slots[None] < cache.length[:, None])) | (
-        (slots[None] >= cache.length[:, None]) & (slots[None] < new_len[:, None]))
+    key_mask = committed_slots(cache) | ((slots[None] >= cache.length[:, None]) & (slots[None] < new_len[:, None]))
     return KVCache(k=k, v=v, key_mask=key_mask, length=new_len.astype(jnp.int32))
 
 
