@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
-from heisd_jax import vla
+from heisd_jax import drafter, vla
 from heisd_jax.tokenizer import ActionTokenizer
 
 FORMAT = "heisd-jax-policy-v1"
@@ -211,8 +211,6 @@ def save_drafter(path: str | Path, dparams, target_cfg: vla.VLAConfig, target_pa
 
 def load_drafter(path: str | Path, target_cfg: vla.VLAConfig, target_params):
     """(drafter params, meta); refuses a drafter trained for another target."""
-    from heisd_jax import drafter  # noqa: PLC0415 (drafter imports vla; keep this module light)
-
     path = Path(path)
     mngr, step, meta = _read_meta(path)
     if meta.get("kind") != "drafter":

@@ -27,7 +27,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from heisd_jax import data, vla
+from heisd_jax import data, drafter, vla
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 
@@ -156,7 +156,6 @@ def greedy_tokens(tparams, model_cfg: vla.VLAConfig, table: data.StepTable, batc
 
 
 def init_drafter_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState:
-    from heisd_jax import drafter  # noqa: PLC0415
 
     params = drafter.init_params(model_cfg, jax.random.PRNGKey(cfg.seed))
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
@@ -166,7 +165,6 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
     """Jitted (state, tparams, table, tokens, key) -> (state, metrics): EAGLE's loss on a
     random minibatch of steps teacher-forced on the target's greedy tokens; data parallel
     over `mesh` as `make_train_step`."""
-    from heisd_jax import drafter  # noqa: PLC0415
     opt = optimizer(cfg)
 
     def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
@@ -185,7 +183,6 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
 
 
 def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
-    from heisd_jax import drafter  # noqa: PLC0415
 
     @jax.jit
     def evaluate(dparams, tparams, table: data.StepTable, tokens, key):

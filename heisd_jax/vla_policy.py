@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from envs.env import EnvState
 from envs.rollout import Policy, Stats
-from heisd_jax import vla
+from heisd_jax import hybrid, spec_decode, vla
 from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
@@ -50,8 +50,6 @@ def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, S
 def drafter_sd(spec):
     """Drafter-based speculative decoding (Spec-VLA / EAGLE-2) with the given drafter
     parameters and `spec_decode.SpecConfig`, as a DecodeFn over (target params, ...)."""
-    from heisd_jax import spec_decode  # noqa: PLC0415
-
     def decode(params, cfg, obs):
         return spec_decode.spec_decode(params["target"], params["drafter"], cfg, spec, obs)
     return decode
@@ -61,8 +59,6 @@ def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, h
                   global_task_index) -> Policy:
     """The HeiSD step (`heisd_jax.hybrid`) as a policy. params: {"target", "drafter",
     "store"} (+ "costs" for budget "auto"); global_task_index [n_tasks]: the datastore's task index of each env task."""
-    from heisd_jax import hybrid  # noqa: PLC0415
-
     gidx = jnp.asarray(global_task_index, jnp.int32)
 
     def init(params, states):

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from heisd_jax import kinematics, vla
 from heisd_jax.retrieval import FORMAT, Datastore, KeySpec, make_keys
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
@@ -69,7 +70,6 @@ def demo_features(path: str | os.PathLike, episodes: list[int] | None = None) ->
     """The kinematic features (`heisd_jax.kinematics.features`) of every step of the demos
     [N, 5], the previous velocity being the episode's previous step's (zero at the start)."""
     from envs import demos  # noqa: PLC0415
-    from heisd_jax import kinematics  # noqa: PLC0415
 
     ds = demos.DemoDataset(path)
     cols = {k: [] for k in ("ee_vel", "ee_ang_vel", "ee_acc", "gripper_vel", "prev")}
@@ -130,7 +130,7 @@ def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | N
     `build_from_demos` order). Retrieved drafts are verified against the target's choices,
     and the target imitates the expert only approximately: values it would choose itself
     are accepted far more often (as EAGLE trains its drafter on the target's tokens)."""
-    from heisd_jax import data, vla  # noqa: PLC0415
+    from heisd_jax import data  # noqa: PLC0415 (data imports envs)
 
     steps = data.load_steps(str(path), episodes)
     decode = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
