@@ -156,7 +156,6 @@ def greedy_tokens(tparams, model_cfg: vla.VLAConfig, table: data.StepTable, batc
 
 
 def init_drafter_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState:
-
     params = drafter.init_params(model_cfg, jax.random.PRNGKey(cfg.seed))
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
 
@@ -183,7 +182,6 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
 
 
 def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
-
     @jax.jit
     def evaluate(dparams, tparams, table: data.StepTable, tokens, key):
         i = jax.random.randint(key, (batch,), 0, table.size)

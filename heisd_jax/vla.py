@@ -270,10 +270,9 @@ def init_cache(cfg: VLAConfig, batch: int) -> KVCache:
 
 
 def rotary_angles(cfg: VLAConfig, positions: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(cos, sin) [B, T, 1, Dh/2] float32 of tokens at positions [B, T]: computed once per
-    pass and shared by every layer (computed inside each layer, XLA fuses the sines into
-    each layer's attention products and recomputes them there). Rotary positions count
-    real tokens only: a scaled-up prompt's pads sit at slots 0..image_pad-1."""
+    """(cos, sin) [B, T, 1, Dh/2] float32 of tokens at positions [B, T], computed once per
+    pass and shared by every layer. Rotary positions count real tokens only: a scaled-up
+    prompt's pads sit at slots 0..image_pad-1."""
     if cfg.image_pad:
         positions = jnp.maximum(positions - cfg.image_pad, 0)
     half = cfg.d_model // cfg.n_heads // 2
