@@ -1,14 +1,17 @@
 """Where one decode call's device time goes, per kernel, at large batch sizes.
 
   python -m experiments.studies.trace_decode --batch_sizes=256,1024 --tree=4x2x8 --trace_dir=/tmp/trace
+  python -m experiments.studies.trace_decode --method=heisd:budget=fixed,target_scale=llama2-7b,dtype=bfloat16 \
+      --batch_sizes=1
 
-With the shipped target and drafter on random observations (`cost_model.synthetic_inputs`),
-per batch size, each of these jitted calls is timed (median wall time of --reps calls,
+With the shipped target and drafter (at --method's numerics: its dtype and `target_scale`) on
+random observations (`cost_model.synthetic_inputs`), per batch size, each of these jitted calls
+is timed (median wall time of --reps calls,
 after a warm-up) and then traced with `jax.profiler` for --trace_calls calls:
   ar          greedy AR decoding (`vla.ar_decode`)
   prefill     the target's prompt pass (`vla.prefill_features`)
   prefill_blk the prompt pass with the retrieval candidates appended (fused verification)
-  zero_round  the HeiSD decode (`hybrid.decode`, fused verification, --tree) with every
+  zero_round  the HeiSD decode (`hybrid.decode` with --method's config, --tree) with every
               candidate equal to the target's own greedy action: accepted whole, no draft
               round; what an option's decode costs besides its rounds
   random      the same decode on random candidates (several draft rounds)
@@ -31,13 +34,15 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, hybrid, timing, vla
+from heisd_jax import budget, checkpoint, cost_model, hybrid, methods, timing, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_list("batch_sizes", ["256", "1024"], "Batch sizes.")
 cli.positive_int_list("batch_sizes")
-flags.DEFINE_string("tree", "4x2x8", "The HeiSD decode's draft tree, TOPKxDEPTHxTOTAL.")
+flags.DEFINE_string("method", "heisd:budget=fixed",
+                    "The HybridConfig traced: a hybrid method and its settings (numerics included).")
+flags.DEFINE_string("tree", "", "The HeiSD decode's draft tree, TOPKxDEPTHxTOTAL (empty: the method's).")
 flags.DEFINE_integer("reps", 5, "Timed calls per function (median).")
 flags.DEFINE_integer("trace_calls", 2, "Calls per function inside its trace (0: no traces).")
 flags.DEFINE_integer("top", 15, "Kernels listed per function and device timeline.")
@@ -72,17 +77,24 @@ def main(argv):
         sizes = [int(b) for b in FLAGS.batch_sizes]
         if min(sizes) < 1 or FLAGS.reps < 1 or FLAGS.trace_calls < 0:
             raise ValueError("batch sizes and --reps must be >= 1, --trace_calls >= 0")
-        (tree,) = budget.parse_trees(FLAGS.tree)
+        trees = budget.parse_trees(FLAGS.tree) if FLAGS.tree else ()
+        ((name, given),) = methods.parse_method_list(FLAGS.method)
+        mcfg = methods.config(name, given)
+        if not isinstance(mcfg.decode, hybrid.HybridConfig):
+            raise ValueError(f"--method {name!r} is not a hybrid method")
     except ValueError as e:
-        raise app.UsageError(f"{e} (--batch_sizes like 256,1024; --tree like 4x2x8)") from e
+        raise app.UsageError(f"{e} (--batch_sizes like 256,1024; --tree like 4x2x8; "
+                             f"--method like heisd:budget=fixed)") from e
     tp, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     dp = checkpoint.load_drafter(FLAGS.drafter, cfg, tp)[0]
-    hcfg = hybrid.PAPER  # 4 retrieved candidates verified in the prefill
-    hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, tree))
+    cfg, tp, dp = methods.in_numerics(cfg, mcfg.numerics, tp, dp)
+    hcfg = mcfg.decode
+    if trees:
+        hcfg = dataclasses.replace(hcfg, spec=budget.tree_spec(hcfg.spec, trees[0]))
     hcfg.check_fits(cfg)
     params = {"target": tp, "drafter": dp}
-    print(f"{jax.devices()[0].device_kind}, tree {FLAGS.tree}, fused verification, {hcfg.n_verified} candidates",
-          flush=True)
+    print(f"{jax.devices()[0].device_kind}, {FLAGS.method}, tree {hcfg.spec.top_k}x{hcfg.spec.depth}x"
+          f"{hcfg.spec.total_tokens}, verify={hcfg.verify}, {hcfg.n_verified} candidates", flush=True)
     results = []
     for batch in sizes:
         for name, (fn, args) in functions(params, cfg, hcfg, batch).items():
@@ -108,7 +120,7 @@ def main(argv):
               f"+ {by['zero_round'] - by['prefill_blk']:.2f} ms outside the target pass (AR {by['ar']:.2f} ms)",
               flush=True)
         if FLAGS.out:
-            Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "tree": FLAGS.tree,
+            Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "method": FLAGS.method, "tree": FLAGS.tree,
                                                    "rows": results}, indent=1))
 
 
