@@ -75,6 +75,11 @@ def main(argv):
         one = np.stack([np.asarray(fn(p, obs_at(t, slice(b, b + 1))))[0] for t, b in pick])
         return batch, one
 
+    def write(summary):
+        record = {**results_io.provenance(cli.command_line()), "scale": FLAGS.target_scale, "batch": n,
+                  "summary": summary}
+        results_io.write_json_atomic(FLAGS.out, record)
+
     ref_batch, ref_one = decode_all(params, cfg)
     summary = {"states": int(live.sum()), "batch1_states": len(pick),
                "shipped_batch1_vs_batch": float(np.mean(np.all(ref_one == ref_batch[pick[:, 0], pick[:, 1]], -1)))}
@@ -93,8 +98,7 @@ def main(argv):
         print(f"{FLAGS.target_scale} {dtype}: identical to the shipped target on {same_b.mean():.2%} of {live.sum()} "
               f"states at batch {n}, {same_1.mean():.2%} of {len(pick)} at batch 1 (expanded in {built:.0f}s)",
               flush=True)
-    record = {**results_io.provenance(cli.command_line()), "scale": FLAGS.target_scale, "batch": n, "summary": summary}
-    results_io.write_json_atomic(FLAGS.out, record)
+        write(summary)  # after each dtype: a run cut off keeps what it measured
     print(json.dumps(summary, indent=1))
 
 
