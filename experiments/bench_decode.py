@@ -30,7 +30,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos, language
 from heisd_jax.timing import median_seconds
-from heisd_jax import checkpoint, data, results_io, spec_decode, vla
+from heisd_jax import checkpoint, data, results_io, spec_decode, target_model, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -74,7 +74,7 @@ def bench(params, cfg: vla.VLAConfig, batch: int, reps: int, dparams=None) -> di
     tok = jnp.full((batch, 1), cfg.first_action_id, jnp.int32)
     decode1 = jax.jit(lambda p, c, t: vla.decode(p, cfg, c, t, jnp.zeros((batch, 1), jnp.int32),
                                                  jnp.ones((batch, 1, 1), bool))[0])
-    ar = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    ar = jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])
     t = {"prefill": median_seconds(lambda: prefill(params, obs)[0], reps),
          "decode1": median_seconds(lambda: decode1(params, cache, tok), reps),
          "ar_action": median_seconds(lambda: ar(params, obs), reps)}

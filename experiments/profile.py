@@ -39,7 +39,7 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import hybrid, methods, results_io, retrieval, spec_decode as sd, timing, vla, vla_policy
+from heisd_jax import hybrid, methods, results_io, retrieval, spec_decode as sd, target_model, timing, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -60,7 +60,7 @@ def component_fns(meta: dict, name: str):
     """Jitted parts of the method's decode step (see the module docstring)."""
     cfg, spec, hcfg = meta["cfg"], meta.get("spec"), meta.get("hcfg")
     tp = (lambda p: p["target"]) if name != "ar" else (lambda p: p)
-    fns = {"ar": jax.jit(lambda p, obs: vla.ar_decode(tp(p), cfg, obs)[0]),
+    fns = {"ar": jax.jit(lambda p, obs: target_model.ar_decode(tp(p), cfg, obs)[0]),
            "prefill": jax.jit(lambda p, obs: vla.prefill_features(tp(p), cfg, obs))}
     if name == "ar":
         return fns

@@ -25,7 +25,7 @@ import numpy as np
 
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, scale, vla, vla_policy
+from heisd_jax import checkpoint, methods, results_io, scale, target_model, vla, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -70,7 +70,7 @@ def main(argv):
 
     def decode_all(p, c):
         """Tokens [T, B, 7] at the recording's batch size, and [N, 7] of the picked states at batch 1."""
-        fn = jax.jit(lambda p, o: vla.ar_decode(p, c, o)[0])
+        fn = jax.jit(lambda p, o: target_model.ar_decode(p, c, o)[0])
         batch = np.stack([np.asarray(fn(p, obs_at(t))) for t in range(FLAGS.steps)])
         one = np.stack([np.asarray(fn(p, obs_at(t, slice(b, b + 1))))[0] for t, b in pick])
         return batch, one

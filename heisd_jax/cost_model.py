@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import budget, cache_dirs, drafter, hybrid, results_io, retrieval, spec_decode, vla
+from heisd_jax import budget, cache_dirs, drafter, hybrid, results_io, retrieval, spec_decode, target_model, vla
 from heisd_jax.timing import in_graph_ms
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
@@ -116,10 +116,13 @@ class CostTable:
         return "\n".join(lines)
 
 
-def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int, reps: int = 7,
+def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batch: int, reps: int = 7,
               n_draws: int = 3) -> CostTable:
     """Measures the cost table (seconds to minutes: one compile per piece); each option's
-    whole decode on `n_draws` random input draws."""
+    whole decode on `n_draws` random input draws. model: a `vla.VLAConfig` or any
+    `target_model.TargetModel`."""
+    target = target_model.as_target(model)
+    cfg = target.cfg
     t_start = time.perf_counter()
     tp, dp = params["target"], params["drafter"]
     n = hcfg.n_verified  # the datastore's candidates and the recent actions
@@ -127,22 +130,22 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     valid = jnp.ones(cand.shape[:2], bool)
     ms = lambda fn, *args: in_graph_ms(fn, args, reps=reps)  # noqa: E731
 
-    pieces = {"prefill_ms": {"0": ms(lambda tp, obs: vla.prefill_features(tp, cfg, obs)[0], tp, obs)}}
+    pieces = {"prefill_ms": {"0": ms(lambda tp, obs: target.prefill(tp, obs)[0], tp, obs)}}
     for m in sorted({1, n}):
         block = hybrid.candidate_block(cand[:, :m])
         pieces["prefill_ms"][str(m * (ACTION_DIM - 1))] = ms(
-            lambda tp, obs, block: vla.prefill_with_block(tp, cfg, obs, *block)[3], tp, obs, block)
-    _, hidden, x, cache = jax.jit(lambda tp, obs: vla.prefill_features(tp, cfg, obs))(tp, obs)
+            lambda tp, obs, block: target.prefill_with_block(tp, obs, *block)[3], tp, obs, block)
+    _, hidden, x, cache = jax.jit(target.prefill)(tp, obs)
     largest = max(t[2] for t in hcfg.budget.trees) + 1
     pieces["cached_ms"] = {}
     for t in sorted({t for t in (1, 2, 4, 8, 16, 32) if t < largest} | {largest}):
         toks = jnp.full((batch, t), cfg.first_action_id, jnp.int32)
         depth = jnp.broadcast_to(jnp.arange(t), (batch, t))
         intra = jnp.broadcast_to(jnp.tril(jnp.ones((t, t), bool)), (batch, t, t))
-        pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: vla.decode(tp, cfg, c, a, b, i)[0],
+        pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: target.decode(tp, c, a, b, i)[0],
                                          tp, cache, toks, depth, intra)
     key_ok = vla.prompt_key_mask(cfg, obs.instruction)
-    root_emb = vla.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))
+    root_emb = target.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))
     pieces["drafter_prompt_ms"] = ms(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e)[0],
                                      dp, x, hidden, key_ok, root_emb)
     _, dcache = jax.jit(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e))(dp, x, hidden, key_ok, root_emb)
@@ -164,7 +167,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
     whole_ms = lambda fn, *args: in_graph_ms(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
     skip = jnp.zeros((batch,), bool)
     def ar(tp, obs):
-        return vla.ar_decode(tp, cfg, obs)[0]
+        return target_model.ar_decode(tp, target, obs)[0]
     # Candidates equal to the target's own greedy action: accepted whole, zero draft rounds.
     exact = jnp.broadcast_to(jax.jit(ar)(tp, obs)[:, None], cand.shape)
     ar_ms = whole_ms(ar, tp, obs)
@@ -173,7 +176,7 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
 
     def decoder(hc):
         def dec(p, obs, cand, valid, use, skip):
-            return hybrid.decode(p, cfg, hc, obs, cand, valid, use, skip)
+            return hybrid.decode(p, target, hc, obs, cand, valid, use, skip)
         rounds = jax.jit(lambda *a: jnp.max(dec(*a)[1]["rounds"]))
 
         def timed(use, inputs):
@@ -205,11 +208,11 @@ def calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
         spec = budget.tree_spec(hcfg.spec, tree)
         timed = decoder(dataclasses.replace(hcfg, spec=spec, continuation="drafter"))
         s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
-            tp, dp, cfg, *vla.prefill_features(tp, cfg, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
+            tp, dp, target, *target.prefill(tp, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
         name = budget.Option(tree, False).name
         # The whole state out (not just the tokens), or XLA drops the cache commit.
         round_ms = pieces["round_alone_ms"][name] = ms(
-            lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, cfg, spec, s), tp, dp, s0)
+            lambda tp, dp, s, spec=spec: spec_decode.round_step(tp, dp, target, spec, s), tp, dp, s0)
         mine = [o for o in opts if o.tree == tree]
         if any(o.retrieval for o in mine):  # the round's cost in context: slope from the zero-round anchor
             rows[name + "+retrieval"] = row(*in_context(timed, name + "+retrieval", round_ms))

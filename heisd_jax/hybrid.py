@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from heisd_jax import acceptance as rules, budget as budget_lib, kinematics, retrieval, spec_decode, vla
+from heisd_jax import acceptance as rules, budget as budget_lib, kinematics, retrieval, spec_decode, target_model, vla
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 MODES = ("hybrid", "retrieval", "drafter")  # hybrid: kinematic boundary; else every step in that mode
@@ -156,14 +156,16 @@ STAT_KEYS = ("target_passes", "drafter_passes", "rounds", "tokens", "retrieval_v
              "retrieval_whole", "skipped")
 
 
-def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
+def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
            cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray, skip: jnp.ndarray):
     """One action per row. params: {"target", "drafter"}; cand [B, N, 7] retrieved token
     ids, cand_valid [B, N]; use_retrieval [B]: verify the candidates (else drafter SD from
     the prefill); skip [B]: execute cand[:, 0] without a target pass. Returns token ids
     [B, 7] and per-row stats (STAT_KEYS): target/drafter passes, rounds, tokens, whether the
     retrieval draft was verified, its accepted length and whether it was accepted whole,
-    whether the row skipped."""
+    whether the row skipped. model: a `vla.VLAConfig` or any `target_model.TargetModel`."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     tp, dp = params["target"], params["drafter"]
     b, n, _ = cand.shape
     c = ACTION_DIM - 1
@@ -172,28 +174,28 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
 
     def with_target(_):
         block = candidate_block(cand)
-        zeros_blk = (jnp.zeros((b, n * c, cfg.vocab_size), jnp.float32), jnp.zeros((b, n * c, cfg.d_model), cfg.dtype))
-        kv_shape = (cfg.n_layers, b, n * c, cfg.n_heads, cfg.d_model // cfg.n_heads)
-        zeros_kv = vla.Block(k=jnp.zeros(kv_shape, cfg.dtype), v=jnp.zeros(kv_shape, cfg.dtype))
+        # What a block pass returns when no row verifies: zeros of the target's own shapes.
+        zeros = lambda shapes: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # noqa: E731
         if hcfg.verify == "prefill":
             def fused(_):
-                lg, h, x, blg, bh, cache, kv = vla.prefill_with_block(tp, cfg, obs, *block)
+                lg, h, x, blg, bh, cache, kv = t.prefill_with_block(tp, obs, *block)
                 return lg, h, x, blg, bh.astype(cfg.dtype), cache, kv
 
             def plain(_):
-                lg, h, x, cache = vla.prefill_features(tp, cfg, obs)
-                return (lg, h, x, *zeros_blk, cache, zeros_kv)
+                lg, h, x, cache = t.prefill(tp, obs)
+                _, _, _, blg, bh, _, kv = zeros(jax.eval_shape(fused, None))
+                return lg, h, x, blg, bh, cache, kv
             logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(
                 jnp.any(verify_rows), fused, plain, None)
             passes = jnp.ones((b,), jnp.float32)
         else:
-            logits, hidden, x, cache = vla.prefill_features(tp, cfg, obs)
+            logits, hidden, x, cache = t.prefill(tp, obs)
 
             def separate(cache):
-                blg, bh, kv = vla.decode(tp, cfg, cache, *block)
+                blg, bh, kv = t.decode(tp, cache, *block)
                 return blg, bh.astype(cfg.dtype), kv
             blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
-                                                      lambda cache: (*zeros_blk, zeros_kv), cache)
+                                                      lambda cache: zeros(jax.eval_shape(separate, cache)), cache)
             passes = 1.0 + verify_rows.astype(jnp.float32)
 
         greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
@@ -209,12 +211,12 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         i = jnp.arange(ACTION_DIM)[None]
         bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
         chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
-        committed = vla.commit(cache, block_kv, chain, jnp.minimum(acc, c))
+        committed = t.commit(cache, block_kv, chain, jnp.minimum(acc, c))
         if hcfg.continuation == "ar":
-            return _continue_ar(tp, cfg, committed, best_cand, bonus, acc, passes, skip, cand[:, 0])
+            return _continue_ar(tp, t, committed, best_cand, bonus, acc, passes, skip, cand[:, 0])
 
         first = jnp.where(acc >= 1, best_cand[:, 0], greedy1 + first_id)
-        s0 = spec_decode.start(tp, dp, cfg, logits, hidden, x, cache, obs, first=first,
+        s0 = spec_decode.start(tp, dp, t, logits, hidden, x, cache, obs, first=first,
                                slack=max(hcfg.spec.depth, ACTION_DIM) + 1)
         # Hand the accepted prefix to the drafter state: token 1 is the root; tokens 2..acc
         # are its accepted path; the bonus is the target's token acc+1.
@@ -224,11 +226,11 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
         hid = jnp.take_along_axis(bhidden, chain[..., None], 1)
         v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
                                  hidden=hid, cache=committed)
-        s1 = spec_decode.advance(tp, dp, cfg, s0, v)
+        s1 = spec_decode.advance(tp, dp, t, s0, v)
         s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
-        s = spec_decode.select_state(acc >= 1, s1, s0)
+        s = spec_decode.select_state(t, acc >= 1, s1, s0)
         s = dataclasses.replace(s, n_out=jnp.where(skip, ACTION_DIM, s.n_out))  # skipped rows are done
-        s = spec_decode.rounds(tp, dp, cfg, hcfg.spec, s)
+        s = spec_decode.rounds(tp, dp, t, hcfg.spec, s)
         out = jnp.where(skip[:, None], cand[:, 0], s.out[:, :ACTION_DIM])
         ran = (~skip).astype(jnp.float32)
         stats = {"target_passes": (s.stats["target_passes"] - 1.0 + passes) * ran,
@@ -247,14 +249,14 @@ def decode(params, cfg: vla.VLAConfig, hcfg: HybridConfig, obs: vla.Observation,
     return tokens, stats
 
 
-def _continue_ar(tp, cfg: vla.VLAConfig, committed: vla.KVCache, best_cand, bonus, acc, passes, skip, top_candidate):
+def _continue_ar(tp, t: target_model.TargetModel, committed, best_cand, bonus, acc, passes, skip, top_candidate):
     """`decode`'s tail with `continuation="ar"`: a row keeps its best candidate's accepted
     tokens 1..acc (already in `committed`) and the target's token acc+1 (`bonus` [B, 1],
     from the same pass), and decodes the rest by single-token target passes; no drafter."""
     i = jnp.arange(ACTION_DIM)[None]
     out = jnp.where(i < acc[:, None], best_cand, jnp.where(i == acc[:, None], bonus, 0))
     n_out = jnp.where(skip, ACTION_DIM, jnp.minimum(acc + 1, ACTION_DIM))  # skipped rows are done
-    out, steps = vla.ar_continue(tp, cfg, committed, out, n_out)
+    out, steps = target_model.ar_continue(tp, t, committed, out, n_out)
     ran = (~skip).astype(jnp.float32)
     steps = steps.astype(jnp.float32)
     return jnp.where(skip[:, None], top_candidate, out), {
@@ -262,12 +264,12 @@ def _continue_ar(tp, cfg: vla.VLAConfig, committed: vla.KVCache, best_cand, bonu
         "retrieval_accepted": acc.astype(jnp.float32)}
 
 
-def decode_ar(params, cfg: vla.VLAConfig, obs: vla.Observation, cand: jnp.ndarray, skip: jnp.ndarray):
+def decode_ar(params, model: target_model.Model, obs: vla.Observation, cand: jnp.ndarray, skip: jnp.ndarray):
     """`decode`'s contract with plain AR for the rows that do not skip (no drafting at all)."""
     b = cand.shape[0]
 
     def with_target(_):
-        tokens, passes = vla.ar_decode(params["target"], cfg, obs)
+        tokens, passes = target_model.ar_decode(params["target"], model, obs)
         return jnp.where(skip[:, None], cand[:, 0], tokens), jnp.where(skip, 0.0, float(passes))
 
     tokens, passes = jax.lax.cond(jnp.any(~skip), with_target,
@@ -278,7 +280,7 @@ def decode_ar(params, cfg: vla.VLAConfig, obs: vla.Observation, cand: jnp.ndarra
                     "retrieval_whole": z, "skipped": skip.astype(jnp.float32)}
 
 
-def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_lib.BudgetState, option: jnp.ndarray,
+def decode_auto(params, model: target_model.Model, hcfg: HybridConfig, bstate: budget_lib.BudgetState, option: jnp.ndarray,
                 obs: vla.Observation, cand: jnp.ndarray, cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray,
                 skip: jnp.ndarray):
     """`decode` under budget option `option` (an index into `budget.options`, from
@@ -290,9 +292,9 @@ def decode_auto(params, cfg: vla.VLAConfig, hcfg: HybridConfig, bstate: budget_l
 
     def branch(**change):
         hc = dataclasses.replace(hcfg, **change)
-        return lambda _: decode(params, cfg, hc, obs, cand, cand_valid, use_retrieval & wants_retrieval, skip)
+        return lambda _: decode(params, model, hc, obs, cand, cand_valid, use_retrieval & wants_retrieval, skip)
 
-    branches = [lambda _: decode_ar(params, cfg, obs, cand, skip)]
+    branches = [lambda _: decode_ar(params, model, obs, cand, skip)]
     if any(o.tree is None and o.retrieval for o in opts):
         branches.append(branch(continuation="ar"))
     branches += [branch(spec=budget_lib.tree_spec(hcfg.spec, t), continuation="drafter") for t in trees]
@@ -372,13 +374,15 @@ class Kinematics:
     gripper_vel: jnp.ndarray  # [B]
 
 
-def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.KeySpec, tok: ActionTokenizer,
+def step(params, model: target_model.Model, hcfg: HybridConfig, key_spec: retrieval.KeySpec, tok: ActionTokenizer,
          state: HybridState, obs: vla.Observation, kin: Kinematics, task: jnp.ndarray):
     """One HeiSD control step for a batch of envs. params: {"target", "drafter", "store"}
     (+ "costs", a `budget.Costs`, with budget "auto": then `state` comes from
     `init_state(..., hcfg)`); task [B]: global task indices (the datastore's). Returns (actions [B, 7] continuous,
     token ids [B, 7], the next state, per-row stats: `decode`'s plus the metric and the
     mode shares)."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     metric = kinematics.fused_metric(
         kinematics.features(kin.lin_vel, kin.ang_vel, kin.lin_acc, kin.gripper_vel, state.prev_lin_vel), hcfg.metric)
     boundary = kinematics.boundary_step(state.boundary, metric, hcfg.boundary)
@@ -430,9 +434,9 @@ def step(params, cfg: vla.VLAConfig, hcfg: HybridConfig, key_spec: retrieval.Key
     if auto:
         fill.update({f"budget_{o.name}": (option == i).astype(jnp.float32)
                      for i, o in enumerate(budget_lib.options(hcfg.budget, hcfg.mode))})
-        run = lambda r, sk: decode_auto(params, cfg, hcfg, bstate, option, *r, sk)  # noqa: E731
+        run = lambda r, sk: decode_auto(params, t, hcfg, bstate, option, *r, sk)  # noqa: E731
     else:
-        run = lambda r, sk: decode(params, cfg, hcfg, *r, sk)  # noqa: E731
+        run = lambda r, sk: decode(params, t, hcfg, *r, sk)  # noqa: E731
     tokens, stats, *new_budget = compact_rows(run, (obs, cand, valid, use_retrieval), skip, cand[:, 0],
                                               hcfg.row_buckets, fill)
     bstate = new_budget[0] if auto else bstate

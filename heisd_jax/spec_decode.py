@@ -29,7 +29,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from heisd_jax import acceptance as rules, drafter, vla
+from heisd_jax import acceptance as rules, drafter, target_model, vla
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 ACCEPTANCE = rules.TOKEN_RULES
@@ -73,12 +73,14 @@ class Tree:
     anc: jnp.ndarray  # [B, M, M] bool: ancestors of each node, itself included
 
 
-def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: vla.KVCache,
+def draft_tree(dparams, tparams, model: target_model.Model, spec: SpecConfig, dcache: vla.KVCache,
                root_feat: jnp.ndarray) -> Tree:
     """The EAGLE-2 tree below the root. root_feat [B, D]: the drafter's feature at the
     root's position (its head gives the root's children). The root sits at position
     root_pos = dcache.length (the first uncommitted one), nodes of level l at root_pos + l;
     node g's keys/values go to scratch slot dcache.length + g. `depth - 1` drafter passes."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     b = root_feat.shape[0]
     k, d = spec.top_k, spec.depth
     m = k * d
@@ -86,7 +88,7 @@ def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: v
     slots = jnp.arange(cfg.cache_slots)
     prefix = vla.committed_slots(dcache)  # [B, S]
 
-    logp = jax.nn.log_softmax(vla.action_head(tparams, cfg, root_feat))  # [B, 256]
+    logp = jax.nn.log_softmax(t.action_head(tparams, root_feat))  # [B, 256]
     score, bins = jax.lax.top_k(logp, k)  # level 1
     parent = jnp.full((b, k), -1, jnp.int32)
     all_bins, all_score, all_parent = [bins], [score], [parent]
@@ -96,7 +98,7 @@ def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: v
         # Drafter pass over this level's k nodes: they read their parent's feature.
         parent_feat = root_feat[:, None].repeat(k, 1) if level == 1 else jnp.take_along_axis(
             feats, (all_parent[-1] - (level - 2) * k)[..., None], 1)
-        emb = vla.embed_tokens(tparams, all_bins[-1] + cfg.first_action_id)
+        emb = t.embed_tokens(tparams, all_bins[-1] + cfg.first_action_id)
         write = dcache.length + (level - 1) * k  # this level's scratch slots
         rel = slots[None] - dcache.length[:, None]  # [B, S] slot offset into the scratch area
         anc = anc_levels[-1]  # [B, k, M]
@@ -105,7 +107,7 @@ def draft_tree(dparams, tparams, cfg: vla.VLAConfig, spec: SpecConfig, dcache: v
         mask = prefix[:, None, :] | tree_ok
         positions = (root_pos + level)[:, None].repeat(k, 1)
         feats, dcache = drafter.step(dparams, cfg, dcache, emb, parent_feat, positions, write, mask)
-        child_logp = jax.nn.log_softmax(vla.action_head(tparams, cfg, feats))  # [B, k, 256]
+        child_logp = jax.nn.log_softmax(t.action_head(tparams, feats))  # [B, k, 256]
         cand = (all_score[-1][..., None] + child_logp).reshape(b, -1)
         score, flat = jax.lax.top_k(cand, k)
         par_local = flat // N_BINS
@@ -127,10 +129,12 @@ def select_nodes(tree: Tree, n: int) -> jnp.ndarray:
     return idx
 
 
-def tree_block(cfg: vla.VLAConfig, root: jnp.ndarray, tree: Tree, sel: jnp.ndarray):
+def tree_block(model: target_model.Model, root: jnp.ndarray, tree: Tree, sel: jnp.ndarray):
     """The verification block of [root, nodes sel]: token ids [B, 1+n], depth offsets
     [B, 1+n] (position = cache length + depth) and the tree mask [B, 1+n, 1+n] (each node
     sees the root, its ancestors and itself)."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     b, n = sel.shape
     anc = jnp.take_along_axis(jnp.take_along_axis(tree.anc, sel[..., None], 1), sel[:, None, :], 2)  # [B, n, n]
     block = jnp.concatenate([root[:, None], jnp.take_along_axis(tree.bins, sel, 1) + cfg.first_action_id], 1)
@@ -149,14 +153,16 @@ class Verified:
     cache: vla.KVCache  # target cache with root + path committed
 
 
-def verify(tparams, cfg: vla.VLAConfig, spec: SpecConfig, cache: vla.KVCache, root: jnp.ndarray, tree: Tree,
+def verify(tparams, model: target_model.Model, spec: SpecConfig, cache: vla.KVCache, root: jnp.ndarray, tree: Tree,
            sel: jnp.ndarray) -> Verified:
     """One target pass over [root, tree nodes sel] and the acceptance of the best path."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     b, n = sel.shape
     d = spec.depth
-    block, depth, intra = tree_block(cfg, root, tree, sel)
+    block, depth, intra = tree_block(t, root, tree, sel)
     sel_bins, sel_depth, anc = block[:, 1:] - cfg.first_action_id, depth[:, 1:], intra[:, 1:, 1:]
-    logits, hidden, blk = vla.decode(tparams, cfg, cache, block, depth, intra)
+    logits, hidden, blk = t.decode(tparams, cache, block, depth, intra)
     greedy = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B, 1+n] bins
 
     # Block position of each node's parent: 0 for the root, else 1 + its index in sel.
@@ -182,25 +188,7 @@ def verify(tparams, cfg: vla.VLAConfig, spec: SpecConfig, cache: vla.KVCache, ro
     src = jnp.concatenate([jnp.zeros((b, 1), jnp.int32), path], 1)  # root, then the path
     kept_hidden = jnp.take_along_axis(hidden, src[..., None], 1)
     return Verified(n_accepted=n_acc, path=path, tokens=tokens, hidden=kept_hidden,
-                    cache=vla.commit(cache, blk, src, 1 + n_acc))
-
-
-def _where_rows(active, new, old):
-    """Per-row select: rows where `active` take `new` (leaves have the batch on axis 0).
-
-    KV caches: only `key_mask` and `length` are selected; keys/values are taken from `new`
-    for every row. That is exact because nothing here writes a cache below its row's
-    length (passes write nothing, `vla.commit` and the drafter write at and after it), so
-    `new` and `old` differ only in slots that `old`'s key mask hides. Selecting the whole
-    cache would cost a full copy of it per round (batch 1,024: ~3 ms on an H200)."""
-    def pick(n, o):
-        return jnp.where(active.reshape((-1,) + (1,) * (n.ndim - 1)), n, o)
-
-    def pick_any(n, o):
-        if isinstance(n, vla.KVCache):
-            return vla.KVCache(k=n.k, v=n.v, key_mask=pick(n.key_mask, o.key_mask), length=pick(n.length, o.length))
-        return pick(n, o)
-    return tuple(pick_any(n, o) for n, o in zip(new, old))
+                    cache=t.commit(cache, blk, src, 1 + n_acc))
 
 
 @jax.tree_util.register_dataclass
@@ -218,15 +206,17 @@ class DecodeState:
     stats: dict  # per-row float counters
 
 
-def start(tparams, dparams, cfg: vla.VLAConfig, logits, hidden, prompt_x, cache, obs: vla.Observation,
+def start(tparams, dparams, model: target_model.Model, logits, hidden, prompt_x, cache, obs: vla.Observation,
           first: jnp.ndarray | None = None, slack: int = ACTION_DIM) -> DecodeState:
     """The state after a prefill (its last logits, prompt hidden states, embeddings and
     cache): the first token is the target's greedy choice (or `first` [B], an accepted
     draft), the drafter reads the prompt. One target pass and one drafter pass so far."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     b = logits.shape[0]
     root = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id if first is None else first
     feat, dcache = drafter.prompt_pass(dparams, cfg, prompt_x, hidden, vla.prompt_key_mask(cfg, obs.instruction),
-                                       vla.embed_tokens(tparams, root))
+                                       t.embed_tokens(tparams, root))
     out = jnp.zeros((b, ACTION_DIM + slack), jnp.int32).at[:, 0].set(root)
     stats = {"target_passes": jnp.ones((b,), jnp.float32), "drafter_passes": jnp.ones((b,), jnp.float32),
              "rounds": jnp.zeros((b,), jnp.float32)}
@@ -234,11 +224,13 @@ def start(tparams, dparams, cfg: vla.VLAConfig, logits, hidden, prompt_x, cache,
                        stats=stats)
 
 
-def advance(tparams, dparams, cfg: vla.VLAConfig, s: DecodeState, v: Verified) -> DecodeState:
+def advance(tparams, dparams, model: target_model.Model, s: DecodeState, v: Verified) -> DecodeState:
     """Emits a verified path and its bonus token, and feeds the committed tokens to the
     drafter: entries (embedding of the next token, target hidden) for root + path, the last
     valid one (reading the bonus token) predicting the feature of the next root. Rows
     holding all 7 tokens are left unchanged; stats are not touched."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     b, n = v.tokens.shape  # n = longest path + 1
     active = s.n_out < ACTION_DIM
     j = jnp.arange(n)[None]
@@ -250,59 +242,66 @@ def advance(tparams, dparams, cfg: vla.VLAConfig, s: DecodeState, v: Verified) -
     rel = slots[None] - dcache.length[:, None]
     causal = (rel[:, None, :] >= 0) & (rel[:, None, :] <= j[..., None])  # [B, n, S]
     mask = (dcache.key_mask & (rel < 0))[:, None, :] | causal
-    feats, dc = drafter.step(dparams, cfg, dcache, vla.embed_tokens(tparams, v.tokens), v.hidden,
+    feats, dc = drafter.step(dparams, cfg, dcache, t.embed_tokens(tparams, v.tokens), v.hidden,
                              dcache.length[:, None] + j, dcache.length, mask)
     new_len = dcache.length + 1 + v.n_accepted
     dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)
     feat = jnp.take_along_axis(feats, v.n_accepted[:, None, None], 1)[:, 0]
     root = jnp.take_along_axis(v.tokens, v.n_accepted[:, None], 1)[:, 0]
     new = DecodeState(cache=v.cache, dcache=dc, root=root, feat=feat, out=out, n_out=n_out, stats=s.stats)
-    return select_state(active, new, s)
+    return select_state(t, active, new, s)
 
 
-def select_state(mask: jnp.ndarray, new: DecodeState, old: DecodeState) -> DecodeState:
-    """Per row: `new` where mask [B] holds, else `old`."""
-    leaves = _where_rows(mask, (new.cache, new.dcache, new.root, new.feat, new.out, new.n_out),
-                         (old.cache, old.dcache, old.root, old.feat, old.out, old.n_out))
-    stats = {k: jnp.where(mask, new.stats[k], old.stats[k]) for k in new.stats}
-    return DecodeState(*leaves, stats=stats)
+def select_state(model: target_model.Model, mask: jnp.ndarray, new: DecodeState, old: DecodeState) -> DecodeState:
+    """Per row: `new` where mask [B] holds, else `old` (the target's cache selected by the
+    target, the drafter's by `vla.select_cache`: neither copies a whole cache)."""
+    t = target_model.as_target(model)
+    rows = lambda n, o: target_model.select_rows(mask, n, o)  # noqa: E731
+    return DecodeState(cache=t.select_cache(mask, new.cache, old.cache),
+                       dcache=vla.select_cache(mask, new.dcache, old.dcache), root=rows(new.root, old.root),
+                       feat=rows(new.feat, old.feat), out=rows(new.out, old.out), n_out=rows(new.n_out, old.n_out),
+                       stats=rows(new.stats, old.stats))
 
 
-def round_step(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
+def round_step(tparams, dparams, model: target_model.Model, spec: SpecConfig, s: DecodeState) -> DecodeState:
     """One draft-verify round for every row (rows already holding 7 tokens are unchanged)."""
+    t = target_model.as_target(model)
     active = (s.n_out < ACTION_DIM).astype(jnp.float32)
-    tree = draft_tree(dparams, tparams, cfg, spec, s.dcache, s.feat)
-    v = verify(tparams, cfg, spec, s.cache, s.root, tree, select_nodes(tree, spec.total_tokens))
-    s = advance(tparams, dparams, cfg, s, v)
+    tree = draft_tree(dparams, tparams, t, spec, s.dcache, s.feat)
+    v = verify(tparams, t, spec, s.cache, s.root, tree, select_nodes(tree, spec.total_tokens))
+    s = advance(tparams, dparams, t, s, v)
     stats = {**s.stats, "target_passes": s.stats["target_passes"] + active,
              "drafter_passes": s.stats["drafter_passes"] + spec.depth * active,
              "rounds": s.stats["rounds"] + active}
     return dataclasses.replace(s, stats=stats)
 
 
-def rounds(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, s: DecodeState) -> DecodeState:
+def rounds(tparams, dparams, model: target_model.Model, spec: SpecConfig, s: DecodeState) -> DecodeState:
     """Draft-verify rounds until every row holds 7 tokens (a `lax.while_loop`)."""
+    t = target_model.as_target(model)
     return jax.lax.while_loop(lambda s: jnp.any(s.n_out < ACTION_DIM),
-                              lambda s: round_step(tparams, dparams, cfg, spec, s), s)
+                              lambda s: round_step(tparams, dparams, t, spec, s), s)
 
 
-def spec_decode(tparams, dparams, cfg: vla.VLAConfig, spec: SpecConfig, obs: vla.Observation):
+def spec_decode(tparams, dparams, model: target_model.Model, spec: SpecConfig, obs: vla.Observation):
     """Speculative decoding of one action per row. Returns action token ids [B, 7] and
     per-row stats: target_passes, drafter_passes, tokens (= 7), rounds."""
+    t = target_model.as_target(model)
+    cfg = t.cfg
     spec.check_fits(cfg)
-    logits, hidden, prompt_x, cache = vla.prefill_features(tparams, cfg, obs)
-    s = rounds(tparams, dparams, cfg, spec, start(tparams, dparams, cfg, logits, hidden, prompt_x, cache, obs,
+    logits, hidden, prompt_x, cache = t.prefill(tparams, obs)
+    s = rounds(tparams, dparams, t, spec, start(tparams, dparams, t, logits, hidden, prompt_x, cache, obs,
                                                   slack=spec.depth + 1))
     b = logits.shape[0]
     return s.out[:, :ACTION_DIM], dict(s.stats, tokens=jnp.full((b,), ACTION_DIM, jnp.float32))
 
 
-def decode_action(params, cfg: vla.VLAConfig, obs: vla.Observation,
+def decode_action(params, model: target_model.Model, obs: vla.Observation,
                   spec: SpecConfig | None = None) -> tuple[jnp.ndarray, dict[str, jnp.ndarray]]:
     """Greedy decoding of one action per observation row, in one jitted call: the public
     decode entry (docs/decode_api.md).
 
-    spec None: autoregressive decoding (`vla.ar_decode`); params are the target's parameters.
+    spec None: autoregressive decoding (`target_model.ar_decode`); params are the target's parameters.
     spec a `SpecConfig`: drafter speculative decoding (`spec_decode`);
     params = {"target": target params, "drafter": drafter params}. With strict acceptance
     (the default) its tokens equal AR's.
@@ -313,19 +312,21 @@ def decode_action(params, cfg: vla.VLAConfig, obs: vla.Observation,
     drafter_passes and rounds. Under an outer jit the value checks cannot raise: a row whose
     proprio is not finite or whose instruction ids are out of range gets tokens
     `tokenizer.INVALID_ID` (the zero action) and invalid = 1 (`vla.mark_invalid`), the other
-    rows are unchanged. Compiles once per (cfg, spec, batch shape)."""
-    vla.check_observation(cfg, obs)
+    rows are unchanged. model: the target's `vla.VLAConfig`, or any `target_model.TargetModel`.
+    Compiles once per (model, spec, batch shape)."""
+    t = target_model.as_target(model)
+    vla.check_observation(t.cfg, obs)
     if spec is not None:
-        spec.check_fits(cfg)
-    return _decode_action_jit(params, obs, cfg, spec)
+        spec.check_fits(t.cfg)
+    return _decode_action_jit(params, obs, t, spec)
 
 
-def _decode_action(params, obs: vla.Observation, cfg: vla.VLAConfig, spec):
+def _decode_action(params, obs: vla.Observation, t: target_model.TargetModel, spec):
     if spec is None:
-        tokens, stats = vla.ar_action(params, cfg, obs)
+        tokens, stats = target_model.ar_action(params, t, obs)
     else:
-        tokens, stats = spec_decode(params["target"], params["drafter"], cfg, spec, obs)
-    return vla.mark_invalid(cfg, obs, tokens, stats)
+        tokens, stats = spec_decode(params["target"], params["drafter"], t, spec, obs)
+    return vla.mark_invalid(t.cfg, obs, tokens, stats)
 
 
 _decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))

@@ -27,7 +27,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from heisd_jax import data, drafter, vla
+from heisd_jax import data, drafter, target_model, vla
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 
@@ -146,7 +146,7 @@ def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, lab
 def greedy_tokens(tparams, model_cfg: vla.VLAConfig, table: data.StepTable, batch: int = 1024) -> jnp.ndarray:
     """The target's greedy action tokens [N, 7] for every step of the table: the drafter
     learns to predict the target's own choices (what verification will compare against)."""
-    run = jax.jit(lambda p, obs: vla.ar_decode(p, model_cfg, obs)[0])
+    run = jax.jit(lambda p, obs: target_model.ar_decode(p, model_cfg, obs)[0])
     out = []
     for start in range(0, table.size, batch):
         i = jnp.minimum(jnp.arange(start, start + batch), table.size - 1)

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from envs.env import EnvState
 from envs.rollout import Policy, Stats
-from heisd_jax import hybrid, spec_decode, vla
+from heisd_jax import hybrid, spec_decode, target_model, vla
 from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
 DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
@@ -44,7 +44,7 @@ def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer,
 
 def ar(params, cfg: vla.VLAConfig, obs: vla.Observation) -> tuple[jnp.ndarray, Stats]:
     """Greedy autoregressive decoding (the baseline): 7 target passes per action."""
-    return vla.ar_action(params, cfg, obs)
+    return target_model.ar_action(params, cfg, obs)
 
 
 def drafter_sd(spec):

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, vla
+from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, target_model, vla
 
 from tiny_models import CFG, HYBRID_B as B, candidates
 
@@ -295,7 +295,7 @@ def test_bfloat16_strict_equals_bfloat16_ar(tiny_hybrid):
     params, obs, _ = tiny_hybrid
     cfg16, tp16, dp16 = methods.in_dtype(CFG, "bfloat16", params["target"], params["drafter"])
     assert tp16["embed"]["embedding"].dtype == jnp.bfloat16
-    ar16 = np.asarray(jax.jit(lambda t, o: vla.ar_decode(t, cfg16, o)[0])(tp16, obs))
+    ar16 = np.asarray(jax.jit(lambda t, o: target_model.ar_decode(t, cfg16, o)[0])(tp16, obs))
     spec = sd.SpecConfig(top_k=2, depth=2, total_tokens=4)
     tokens, _ = jax.jit(lambda t, d, o: sd.spec_decode(t, d, cfg16, spec, o))(tp16, dp16, obs)
     np.testing.assert_array_equal(np.asarray(tokens), ar16)

@@ -12,7 +12,7 @@ import pytest
 
 import heisd_jax
 import tiny_models
-from heisd_jax import spec_decode, vla
+from heisd_jax import spec_decode, target_model, vla
 from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,7 +91,7 @@ def test_bad_observations_are_refused_naming_the_field(override, message):
 def test_decode_entries_check_before_the_model():
     params = jax.eval_shape(lambda: vla.init_params(CFG, jax.random.PRNGKey(0)))  # never reached
     bad = _obs(image=np.zeros((2, 3, 16, 16), np.uint8))
-    for call in (lambda: heisd_jax.decode_action(params, CFG, bad), lambda: vla.ar_decode(params, CFG, bad)):
+    for call in (lambda: heisd_jax.decode_action(params, CFG, bad), lambda: target_model.ar_decode(params, CFG, bad)):
         with pytest.raises(ValueError, match="observation.image has shape"):
             call()
     with pytest.raises(TypeError, match="Observation"):

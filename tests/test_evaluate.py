@@ -11,7 +11,7 @@ import pytest
 
 from envs import tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import checkpoint, evaluate as ev, methods, results_io, vla, vla_policy
+from heisd_jax import checkpoint, evaluate as ev, methods, results_io, target_model, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 
 # Tiny, but at the env camera's 64 px so it plugs into the real evaluator.
@@ -86,7 +86,7 @@ def test_ar_policy_acts_on_a_batch_like_ar_decode(tiny_ckpt, compiled):
     state = state.replace(obs=state.obs.replace(image=jax.random.randint(
         jax.random.PRNGKey(0), (2, 64, 64, 3), 0, 255).astype(np.uint8)))
     action, _, stats = pol.act(pol.params, state, (), None)
-    tokens, _ = vla.ar_decode(params, cfg, vla_policy.observation(state))
+    tokens, _ = target_model.ar_decode(params, cfg, vla_policy.observation(state))
     np.testing.assert_allclose(np.asarray(action), np.asarray(tok.decode(tokens)), rtol=1e-6)
     assert action.shape == (2, 7) and np.all(np.asarray(stats["target_passes"]) == 7)
 

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import drafter, methods, scale, spec_decode as sd, vla
+from heisd_jax import drafter, methods, scale, spec_decode as sd, target_model, vla
 
 from tiny_models import CFG, aligned_pair, ar, obs as make_obs
 
@@ -65,7 +65,7 @@ def test_cached_decoding_and_tree_verification_are_exact(expanded):
     (tp, _), (big_tp, _, cfg) = expanded["random"]
     obs = make_obs(4)
     tokens = ar(tp, obs)
-    np.testing.assert_array_equal(jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])(big_tp, obs), tokens)
+    np.testing.assert_array_equal(jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])(big_tp, obs), tokens)
     # a tree block after the prefill: two branches sharing a root
     b = tokens.shape[0]
     block = jnp.concatenate([tokens[:, :3], tokens[:, 1:2] + 1], 1)  # [B, 4]: root, child, grandchild | 2nd child

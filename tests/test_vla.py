@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import vla
+from heisd_jax import target_model, vla
 
 CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
                     cache_slots=48)
@@ -33,7 +33,7 @@ def model():
         forward=jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t)),
         prefill=jax.jit(lambda p, o: vla.prefill(p, CFG, o)),
         decode=jax.jit(lambda p, c, t, d, m: vla.decode(p, CFG, c, t, d, m)),
-        ar=jax.jit(lambda p, o: vla.ar_decode(p, CFG, o)[0]),
+        ar=jax.jit(lambda p, o: target_model.ar_decode(p, CFG, o)[0]),
     )
     return params, fns
 
@@ -160,6 +160,6 @@ def test_unrolled_inference_decodes_the_same_tokens(model):
     params, f = model
     obs = _obs(1)
     cfg = dataclasses.replace(CFG, unroll=True)
-    np.testing.assert_array_equal(jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])(params, obs), f["ar"](params, obs))
+    np.testing.assert_array_equal(jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])(params, obs), f["ar"](params, obs))
     np.testing.assert_allclose(jax.jit(lambda p, o: vla.prefill(p, cfg, o)[0])(params, obs),
                                f["prefill"](params, obs)[0], atol=1e-4)

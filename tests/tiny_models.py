@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import drafter, vla
+from heisd_jax import drafter, target_model, vla
 
 CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
                     cache_slots=128)
@@ -35,7 +35,7 @@ def aligned_pair(noise: float):
     return tp, dict(dp, fc={"kernel": fc, "bias": jnp.zeros(d)}, block=block)
 
 
-_ar = jax.jit(lambda t, o: vla.ar_decode(t, CFG, o)[0])  # one program per batch shape, shared by every test
+_ar = jax.jit(lambda t, o: target_model.ar_decode(t, CFG, o)[0])  # one program per batch shape, shared by every test
 
 
 def ar(tp, obs):

@@ -26,7 +26,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, vla, vla_policy
+from heisd_jax import checkpoint, methods, results_io, target_model, vla, vla_policy
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 
@@ -62,7 +62,7 @@ def main(argv):
     live = ~traj["done"]  # [T, B]
     instr = np.asarray(env.instructions)[tids]
 
-    ar_batch = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    ar_batch = jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])
     probs_fn = jax.jit(lambda p, o, t: _greedy_probs(p, cfg, o, t))
     tokens, probs, gaps = [], [], []
     for t in range(FLAGS.steps):  # AR at the recording's batch size, state by state in time

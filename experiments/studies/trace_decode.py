@@ -8,7 +8,7 @@ With the shipped target and drafter (at --method's numerics: its dtype and `targ
 random observations (`cost_model.synthetic_inputs`), per batch size, each of these jitted calls
 is timed (median wall time of --reps calls,
 after a warm-up) and then traced with `jax.profiler` for --trace_calls calls:
-  ar          greedy AR decoding (`vla.ar_decode`)
+  ar          greedy AR decoding (`target_model.ar_decode`)
   prefill     the target's prompt pass (`vla.prefill_features`)
   prefill_blk the prompt pass with the retrieval candidates appended (fused verification)
   zero_round  the HeiSD decode (`hybrid.decode` with --method's config, --tree) with every
@@ -34,7 +34,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, hybrid, methods, timing, vla
+from heisd_jax import budget, checkpoint, cost_model, hybrid, methods, target_model, timing, vla
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -59,7 +59,7 @@ def functions(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int)
     obs, cand = cost_model.synthetic_inputs(cfg, batch, n)
     valid = jnp.ones((batch, n), bool)
     use, skip = jnp.ones((batch,), bool), jnp.zeros((batch,), bool)
-    ar = jax.jit(lambda tp, obs: vla.ar_decode(tp, cfg, obs)[0])
+    ar = jax.jit(lambda tp, obs: target_model.ar_decode(tp, cfg, obs)[0])
     exact = jnp.broadcast_to(ar(tp, obs)[:, None], cand.shape)
     dec = jax.jit(lambda p, obs, cand: hybrid.decode(p, cfg, hcfg, obs, cand, valid, use, skip))
     blk = jax.jit(lambda tp, obs, cand: vla.prefill_with_block(tp, cfg, obs, *hybrid.candidate_block(cand)))

@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import kinematics, vla
+from heisd_jax import kinematics, target_model, vla
 from heisd_jax.retrieval import FORMAT, Datastore, KeySpec, make_keys
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
@@ -133,7 +133,7 @@ def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | N
     from heisd_jax import data  # noqa: PLC0415 (data imports envs)
 
     steps = data.load_steps(str(path), episodes)
-    decode = jax.jit(lambda p, o: vla.ar_decode(p, cfg, o)[0])
+    decode = jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])
     return in_batches(lambda idx: decode(tparams, vla.Observation(image=steps.image[idx],
                                                                   instruction=steps.instruction[idx],
                                                                   proprio=steps.proprio[idx])),
