@@ -117,7 +117,7 @@ def main(argv):
     pieces = {"prefill": lambda p, o: vla.prefill(p, cfg, o)[0],
               "prefill+block": lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0],
               "decode": lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0],
-              "drafter": lambda dp, c, e, pos, slot, m: drafter.step(dp, cfg, c, e, e, pos, slot, m)[0]}
+              "drafter": lambda dp, c, e, pos, slot, m: drafter.cached_pass(dp, cfg, c, e, e, pos, slot, m)[0]}
     jitted = {k: jax.jit(f) for k, f in pieces.items()}
     prefill_cache = jax.jit(lambda p, o: vla.prefill(p, cfg, o)[2])
     rows = []

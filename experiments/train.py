@@ -172,12 +172,13 @@ def train_vla(out: Path, cfg: train.TrainConfig):
                 "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]]}
 
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-                                                      "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype})
+                                                      "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype},
+                               text_vocab=language.VOCAB)
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
         checkpoint.save_policy(FLAGS.export, _first(state.params), model_cfg, tok,
                                extra={k: meta[k] for k in ("train", "demos", "init", "compute_dtype")},
-                               param_dtype=FLAGS.export_param_dtype)
+                               text_vocab=language.VOCAB, param_dtype=FLAGS.export_param_dtype)
         print(f"policy checkpoint: {FLAGS.export}")
 
 

@@ -2,7 +2,17 @@
 
 The decode API (docs/decode_api.md), importable from here without the simulator:
     Observation, VLAConfig, check_observation, decode_action, SpecConfig, load_policy,
-    load_drafter, ActionTokenizer, expand_target, expand_drafter (a 7B VLA's costs: docs/scale.md)
+    load_drafter, ActionTokenizer, expand_target, expand_drafter (a 7B VLA's costs: docs/scale.md),
+    TargetModel, VLATarget (the interface a decoder calls a target through)
+
+Two layers, arrows one way (tests/test_layers.py pins them):
+- the decode core, which imports nothing of the simulator: the models (`vla`, `drafter`,
+  `tokenizer`, `observation`, `scale`, `checkpoint`), the target-model interface
+  (`target_model`), the decoders and their rules (`spec_decode`, `hybrid`, `acceptance`,
+  `retrieval`, `kinematics`, `budget`, `cost_model`) and `sharding`;
+- the evaluation layer above it and `envs`: `methods`, `vla_policy`, `evaluate`,
+  `executable_store`, `replay`, `data`, `train` and `offline/` (datastore and boundary
+  builders). `envs` imports nothing of `heisd_jax`.
 Names resolve on first use, so `import heisd_jax` itself imports nothing heavy and has no
 side effects (the env package, `envs`, sets its own XLA flags when imported).
 """
@@ -22,6 +32,8 @@ _EXPORTS = {
     "ActionTokenizer": "heisd_jax.tokenizer",
     "expand_target": "heisd_jax.scale",
     "expand_drafter": "heisd_jax.scale",
+    "TargetModel": "heisd_jax.target_model",
+    "VLATarget": "heisd_jax.target_model",
 }
 __all__ = list(_EXPORTS)
 

@@ -33,14 +33,10 @@ class CheckpointError(ValueError):
     """A missing, truncated or mismatched checkpoint."""
 
 
-def metadata(model_cfg: vla.VLAConfig, tok: ActionTokenizer, kind: str = "vla", extra: dict | None = None,
-             text_vocab: Sequence[str] | None = None) -> dict:
-    """A policy checkpoint's metadata. text_vocab: the instruction words by id (default: the
-    env's, `envs.language.VOCAB`, which the training demonstrations are encoded with)."""
-    if text_vocab is None:
-        from envs import language  # noqa: PLC0415 (training-time only; loading never imports envs)
-
-        text_vocab = language.VOCAB
+def metadata(model_cfg: vla.VLAConfig, tok: ActionTokenizer, kind: str = "vla", extra: dict | None = None, *,
+             text_vocab: Sequence[str]) -> dict:
+    """A policy checkpoint's metadata. text_vocab: the instruction words by id, as the
+    training demonstrations were encoded (the env's `envs.language.VOCAB`)."""
     return dict(format=FORMAT, kind=kind, config=dataclasses.asdict(model_cfg), tokenizer=tok.to_dict(),
                 text_vocab=list(text_vocab), **(extra or {}))
 
@@ -69,7 +65,7 @@ PARAM_DTYPES = ("float32", "bfloat16")
 
 
 def save_policy(path: str | Path, params, model_cfg: vla.VLAConfig, tok: ActionTokenizer, extra: dict | None = None,
-                text_vocab: Sequence[str] | None = None, param_dtype: str = "float32"):
+                *, text_vocab: Sequence[str], param_dtype: str = "float32"):
     """Writes a shippable policy checkpoint (parameters and their checksum) at `path`, its
     floating-point parameters stored in `param_dtype` (`PARAM_DTYPES`; bfloat16 halves the
     file, and `load_policy` gives them back in that dtype, checksum verified)."""

@@ -155,7 +155,7 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
         pos = jnp.broadcast_to(cfg.prompt_len + jnp.arange(t), (batch, t))
         mask = jnp.ones((batch, t, cfg.cache_slots), bool)
         pieces["drafter_ms"][str(t)] = ms(
-            lambda dp, c, e, p, m: drafter.step(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
+            lambda dp, c, e, p, m: drafter.cached_pass(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
 
     query_ms = 0.0  # every option but plain AR queries the datastore first
     if "store" in params and hcfg.n_candidates:

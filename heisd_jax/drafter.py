@@ -10,7 +10,7 @@ target's.
 
 Pure functions of (drafter params, target params, cache, inputs), like `vla`:
     prompt_pass(...)      the prompt's P entries into a fresh drafter cache
-    step(...)             T entries written at given slots with an explicit attention mask
+    cached_pass(...)      T entries written at given slots with an explicit attention mask
     loss(...)             EAGLE's training loss on a teacher-forced sequence
 """
 
@@ -52,7 +52,7 @@ def init_params(cfg: vla.VLAConfig, key: jax.Array) -> dict:
 
 
 @vla.at_config_precision
-def step(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, write_slot, mask):
+def cached_pass(dparams, cfg: vla.VLAConfig, cache: vla.KVCache, emb, feat, positions, write_slot, mask):
     """T entries against the drafter cache, their keys/values written at slots
     write_slot..write_slot+T-1 (key_mask/length unchanged). mask [B, T, S] says which slots
     each entry attends to (its own slot included). Returns features [B, T, D] and the cache."""
@@ -75,7 +75,7 @@ def _causal_pass(dparams, cfg: vla.VLAConfig, emb, feat, key_ok):
     slot_ok = vla.pad_to(key_ok, cfg.cache_slots)
     mask = (vla.causal_mask(t, cfg.cache_slots)[None] & slot_ok[:, None, :]) | (slots[None, None, :] == jnp.arange(t)[None, :, None])
     positions = jnp.broadcast_to(jnp.arange(t), (b, t))
-    out, cache = step(dparams, cfg, init_cache(cfg, b), emb, feat, positions, jnp.zeros((b,), jnp.int32), mask)
+    out, cache = cached_pass(dparams, cfg, init_cache(cfg, b), emb, feat, positions, jnp.zeros((b,), jnp.int32), mask)
     return out, cache.replace(key_mask=slot_ok, length=jnp.full((b,), t, jnp.int32))
 
 

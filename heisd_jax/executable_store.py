@@ -32,6 +32,7 @@ import contextlib
 import dataclasses
 import functools
 import hashlib
+import importlib
 import importlib.metadata
 import io
 import json
@@ -45,6 +46,8 @@ from typing import Any
 
 import jax
 import numpy as np
+
+from envs import _xla
 
 FORMAT = 1  # bump when the entry layout changes
 SUFFIX = ".jaxexe"
@@ -145,8 +148,6 @@ def file_digest(path: str | os.PathLike) -> str:
 @functools.cache
 def source_digest() -> str:
     """sha256 over every `.py` file of the packages whose code makes the programs."""
-    import importlib  # noqa: PLC0415
-
     h = hashlib.sha256()
     for name in _PACKAGES:
         root = Path(importlib.import_module(name).__file__).parent
@@ -158,8 +159,6 @@ def source_digest() -> str:
 @functools.cache
 def _versions() -> str:
     """The installed jax, jaxlib, GPU plugins, mujoco, mujoco-mjx and numpy (fixed per process)."""
-    from envs import _xla  # noqa: PLC0415
-
     others = []
     for name in _DISTRIBUTIONS:
         try:

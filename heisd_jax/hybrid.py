@@ -156,6 +156,116 @@ STAT_KEYS = ("target_passes", "drafter_passes", "rounds", "tokens", "retrieval_v
              "retrieval_whole", "skipped")
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass
+class Accepted:
+    """What one target pass over the prompt and the retrieved candidates leaves: the
+    prompt's pass outputs (for the drafter), the best candidate and its accepted prefix
+    (committed to the target's cache), and the target's own token after that prefix."""
+    logits: jnp.ndarray  # [B, V] at the last prompt position
+    hidden: jnp.ndarray  # [B, P, D] prompt hidden states
+    prompt_x: jnp.ndarray  # [B, P, D] prompt embeddings
+    cache: object  # the target's cache holding the prompt
+    committed: object  # ... and the best candidate's accepted tokens 1..min(acc, 6)
+    block_hidden: jnp.ndarray  # [B, 7, D] target hidden of the best candidate's chain
+    best: jnp.ndarray  # [B, 7] token ids of the best candidate
+    acc: jnp.ndarray  # [B] its accepted length, 0..7
+    bonus: jnp.ndarray  # [B, 1] the target's token after the accepted prefix
+    greedy_first: jnp.ndarray  # [B] the target's first token (id)
+    passes: jnp.ndarray  # [B] target passes so far (the prefill, and a separate verification)
+
+
+def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
+                      cand_valid: jnp.ndarray, verify_rows: jnp.ndarray) -> Accepted:
+    """The prefill, with the candidates [B, N, 7] verified inside it (`verify="prefill"`)
+    or in a second pass (`"separate"`) for the rows `verify_rows` [B] (none: the prefill
+    alone), and each row's best candidate by `hcfg`'s sequence acceptance."""
+    cfg = t.cfg
+    b, n, _ = cand.shape
+    c = ACTION_DIM - 1
+    block = candidate_block(cand)
+    zeros = lambda shapes: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # noqa: E731
+    if hcfg.verify == "prefill":
+        def fused(_):
+            lg, h, x, blg, bh, cache, kv = t.prefill_with_block(tp, obs, *block)
+            return lg, h, x, blg, bh.astype(cfg.dtype), cache, kv
+
+        def plain(_):
+            lg, h, x, cache = t.prefill(tp, obs)
+            _, _, _, blg, bh, _, kv = zeros(jax.eval_shape(fused, None))  # the block pass's shapes, zero
+            return lg, h, x, blg, bh, cache, kv
+        logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(jnp.any(verify_rows), fused, plain, None)
+        passes = jnp.ones((b,), jnp.float32)
+    else:
+        logits, hidden, x, cache = t.prefill(tp, obs)
+
+        def separate(cache):
+            blg, bh, kv = t.decode(tp, cache, *block)
+            return blg, bh.astype(cfg.dtype), kv
+        blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
+                                                  lambda cache: zeros(jax.eval_shape(separate, cache)), cache)
+        passes = 1.0 + verify_rows.astype(jnp.float32)
+
+    first_id = cfg.first_action_id
+    greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
+    node_greedy = jnp.argmax(vla.action_logits(cfg, blogits), -1).reshape(b, n, c)
+    target_bins = jnp.concatenate([jnp.broadcast_to(greedy1[:, None, None], (b, n, 1)), node_greedy], -1)
+    length = rules.prefix_length(hcfg.acceptance, hcfg.relax_bins, hcfg.seq, cand - first_id, target_bins)
+    length = jnp.where(cand_valid & verify_rows[:, None], length, 0)
+    best = jnp.argmax(length, 1)
+    acc = jnp.max(length, 1)  # [B] 0..7
+    best_cand = jnp.take_along_axis(cand, best[:, None, None], 1)[:, 0]  # [B, 7]
+    best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
+    # The accepted prefix (tokens 1..acc) is kept and committed; the target's token acc+1 follows.
+    bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
+    chain = best[:, None] * c + jnp.minimum(jnp.arange(ACTION_DIM)[None], c - 1)  # block offsets of its nodes
+    return Accepted(logits=logits, hidden=hidden, prompt_x=x, cache=cache,
+                    committed=t.commit(cache, block_kv, chain, jnp.minimum(acc, c)),
+                    block_hidden=jnp.take_along_axis(bhidden, chain[..., None], 1), best=best_cand, acc=acc,
+                    bonus=bonus, greedy_first=greedy1 + first_id, passes=passes)
+
+
+def continue_ar(tp, t: target_model.TargetModel, a: Accepted, skip: jnp.ndarray):
+    """`decode`'s tail with `continuation="ar"`: a row keeps its best candidate's accepted
+    tokens 1..acc (already committed) and the target's token acc+1 (from the same pass),
+    and decodes the rest by single-token target passes; no drafter. Returns tokens [B, 7]
+    (skipped rows: zeros) and stats."""
+    i = jnp.arange(ACTION_DIM)[None]
+    out = jnp.where(i < a.acc[:, None], a.best, jnp.where(i == a.acc[:, None], a.bonus, 0))
+    n_out = jnp.where(skip, ACTION_DIM, jnp.minimum(a.acc + 1, ACTION_DIM))  # skipped rows are done
+    out, steps = target_model.ar_continue(tp, t, a.committed, out, n_out)
+    ran = (~skip).astype(jnp.float32)
+    steps = steps.astype(jnp.float32)
+    return out, {"target_passes": (a.passes + steps) * ran, "drafter_passes": jnp.zeros_like(ran),
+                 "rounds": steps * ran, "retrieval_accepted": a.acc.astype(jnp.float32)}
+
+
+def continue_drafter(tp, dp, t: target_model.TargetModel, spec: spec_decode.SpecConfig, obs: vla.Observation,
+                     a: Accepted, skip: jnp.ndarray):
+    """`decode`'s tail with `continuation="drafter"`: the drafter reads the prompt, then
+    the accepted prefix (token 1 the root, tokens 2..acc its path, the target's token acc+1
+    the bonus), and draft-verify rounds (`spec`) finish each row. Returns tokens [B, 7]
+    (skipped rows: whatever) and stats."""
+    b = a.acc.shape[0]
+    first = jnp.where(a.acc >= 1, a.best[:, 0], a.greedy_first)
+    s0 = spec_decode.start(tp, dp, t, a.logits, a.hidden, a.prompt_x, a.cache, obs, first=first,
+                           slack=max(spec.depth, ACTION_DIM) + 1)
+    n_acc = jnp.maximum(a.acc - 1, 0)
+    rest = jnp.concatenate([a.best[:, 1:], jnp.zeros((b, 1), jnp.int32)], 1)  # tokens 2..7, pad
+    tokens = jnp.where(jnp.arange(ACTION_DIM)[None] == n_acc[:, None], a.bonus, rest)
+    v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
+                             hidden=a.block_hidden, cache=a.committed)
+    s1 = spec_decode.advance(tp, dp, t, s0, v)
+    s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
+    s = spec_decode.select_state(t, a.acc >= 1, s1, s0)
+    s = dataclasses.replace(s, n_out=jnp.where(skip, ACTION_DIM, s.n_out))  # skipped rows are done
+    s = spec_decode.rounds(tp, dp, t, spec, s)
+    ran = (~skip).astype(jnp.float32)
+    return s.out[:, :ACTION_DIM], {"target_passes": (s.stats["target_passes"] - 1.0 + a.passes) * ran,
+                                   "drafter_passes": s.stats["drafter_passes"] * ran,
+                                   "rounds": s.stats["rounds"] * ran, "retrieval_accepted": a.acc.astype(jnp.float32)}
+
+
 def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
            cand_valid: jnp.ndarray, use_retrieval: jnp.ndarray, skip: jnp.ndarray):
     """One action per row. params: {"target", "drafter"}; cand [B, N, 7] retrieved token
@@ -165,78 +275,17 @@ def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Obser
     retrieval draft was verified, its accepted length and whether it was accepted whole,
     whether the row skipped. model: a `vla.VLAConfig` or any `target_model.TargetModel`."""
     t = target_model.as_target(model)
-    cfg = t.cfg
     tp, dp = params["target"], params["drafter"]
-    b, n, _ = cand.shape
-    c = ACTION_DIM - 1
+    b = cand.shape[0]
     verify_rows = use_retrieval & ~skip
-    first_id = cfg.first_action_id
 
     def with_target(_):
-        block = candidate_block(cand)
-        # What a block pass returns when no row verifies: zeros of the target's own shapes.
-        zeros = lambda shapes: jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), shapes)  # noqa: E731
-        if hcfg.verify == "prefill":
-            def fused(_):
-                lg, h, x, blg, bh, cache, kv = t.prefill_with_block(tp, obs, *block)
-                return lg, h, x, blg, bh.astype(cfg.dtype), cache, kv
-
-            def plain(_):
-                lg, h, x, cache = t.prefill(tp, obs)
-                _, _, _, blg, bh, _, kv = zeros(jax.eval_shape(fused, None))
-                return lg, h, x, blg, bh, cache, kv
-            logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(
-                jnp.any(verify_rows), fused, plain, None)
-            passes = jnp.ones((b,), jnp.float32)
-        else:
-            logits, hidden, x, cache = t.prefill(tp, obs)
-
-            def separate(cache):
-                blg, bh, kv = t.decode(tp, cache, *block)
-                return blg, bh.astype(cfg.dtype), kv
-            blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
-                                                      lambda cache: zeros(jax.eval_shape(separate, cache)), cache)
-            passes = 1.0 + verify_rows.astype(jnp.float32)
-
-        greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
-        node_greedy = jnp.argmax(vla.action_logits(cfg, blogits), -1).reshape(b, n, c)
-        target_bins = jnp.concatenate([jnp.broadcast_to(greedy1[:, None, None], (b, n, 1)), node_greedy], -1)
-        length = rules.prefix_length(hcfg.acceptance, hcfg.relax_bins, hcfg.seq, cand - first_id, target_bins)
-        length = jnp.where(cand_valid & verify_rows[:, None], length, 0)
-        best = jnp.argmax(length, 1)
-        acc = jnp.max(length, 1)  # [B] 0..7
-        best_cand = jnp.take_along_axis(cand, best[:, None, None], 1)[:, 0]  # [B, 7]
-        best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
-        # The accepted prefix (tokens 1..acc) is kept and committed; the target's token acc+1 follows.
-        i = jnp.arange(ACTION_DIM)[None]
-        bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
-        chain = best[:, None] * c + jnp.minimum(i, c - 1)  # block offsets of the best chain's nodes
-        committed = t.commit(cache, block_kv, chain, jnp.minimum(acc, c))
+        a = verify_candidates(tp, t, hcfg, obs, cand, cand_valid, verify_rows)
         if hcfg.continuation == "ar":
-            return _continue_ar(tp, t, committed, best_cand, bonus, acc, passes, skip, cand[:, 0])
-
-        first = jnp.where(acc >= 1, best_cand[:, 0], greedy1 + first_id)
-        s0 = spec_decode.start(tp, dp, t, logits, hidden, x, cache, obs, first=first,
-                               slack=max(hcfg.spec.depth, ACTION_DIM) + 1)
-        # Hand the accepted prefix to the drafter state: token 1 is the root; tokens 2..acc
-        # are its accepted path; the bonus is the target's token acc+1.
-        n_acc = jnp.maximum(acc - 1, 0)
-        rest = jnp.concatenate([best_cand[:, 1:], jnp.zeros((b, 1), jnp.int32)], 1)  # tokens 2..7, pad
-        tokens = jnp.where(i == n_acc[:, None], bonus, rest)
-        hid = jnp.take_along_axis(bhidden, chain[..., None], 1)
-        v = spec_decode.Verified(n_accepted=n_acc, path=jnp.zeros((b, ACTION_DIM - 1), jnp.int32), tokens=tokens,
-                                 hidden=hid, cache=committed)
-        s1 = spec_decode.advance(tp, dp, t, s0, v)
-        s1 = dataclasses.replace(s1, stats=dict(s1.stats, drafter_passes=s1.stats["drafter_passes"] + 1.0))
-        s = spec_decode.select_state(t, acc >= 1, s1, s0)
-        s = dataclasses.replace(s, n_out=jnp.where(skip, ACTION_DIM, s.n_out))  # skipped rows are done
-        s = spec_decode.rounds(tp, dp, t, hcfg.spec, s)
-        out = jnp.where(skip[:, None], cand[:, 0], s.out[:, :ACTION_DIM])
-        ran = (~skip).astype(jnp.float32)
-        stats = {"target_passes": (s.stats["target_passes"] - 1.0 + passes) * ran,
-                 "drafter_passes": s.stats["drafter_passes"] * ran, "rounds": s.stats["rounds"] * ran,
-                 "retrieval_accepted": acc.astype(jnp.float32)}
-        return out, stats
+            out, stats = continue_ar(tp, t, a, skip)
+        else:
+            out, stats = continue_drafter(tp, dp, t, hcfg.spec, obs, a, skip)
+        return jnp.where(skip[:, None], cand[:, 0], out), stats
 
     def all_skipped(_):
         z = jnp.zeros((b,), jnp.float32)
@@ -247,21 +296,6 @@ def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Obser
     stats.update(tokens=jnp.full((b,), ACTION_DIM, jnp.float32), retrieval_verified=verified,
                  retrieval_whole=verified * (stats["retrieval_accepted"] == ACTION_DIM), skipped=skip.astype(jnp.float32))
     return tokens, stats
-
-
-def _continue_ar(tp, t: target_model.TargetModel, committed, best_cand, bonus, acc, passes, skip, top_candidate):
-    """`decode`'s tail with `continuation="ar"`: a row keeps its best candidate's accepted
-    tokens 1..acc (already in `committed`) and the target's token acc+1 (`bonus` [B, 1],
-    from the same pass), and decodes the rest by single-token target passes; no drafter."""
-    i = jnp.arange(ACTION_DIM)[None]
-    out = jnp.where(i < acc[:, None], best_cand, jnp.where(i == acc[:, None], bonus, 0))
-    n_out = jnp.where(skip, ACTION_DIM, jnp.minimum(acc + 1, ACTION_DIM))  # skipped rows are done
-    out, steps = target_model.ar_continue(tp, t, committed, out, n_out)
-    ran = (~skip).astype(jnp.float32)
-    steps = steps.astype(jnp.float32)
-    return jnp.where(skip[:, None], top_candidate, out), {
-        "target_passes": (passes + steps) * ran, "drafter_passes": jnp.zeros_like(ran), "rounds": steps * ran,
-        "retrieval_accepted": acc.astype(jnp.float32)}
 
 
 def decode_ar(params, model: target_model.Model, obs: vla.Observation, cand: jnp.ndarray, skip: jnp.ndarray):

@@ -106,7 +106,7 @@ def draft_tree(dparams, tparams, model: target_model.Model, spec: SpecConfig, dc
         tree_ok = jnp.take_along_axis(anc, jnp.clip(rel, 0, m - 1)[:, None, :].repeat(k, 1), 2) & in_tree[:, None]
         mask = prefix[:, None, :] | tree_ok
         positions = (root_pos + level)[:, None].repeat(k, 1)
-        feats, dcache = drafter.step(dparams, cfg, dcache, emb, parent_feat, positions, write, mask)
+        feats, dcache = drafter.cached_pass(dparams, cfg, dcache, emb, parent_feat, positions, write, mask)
         child_logp = jax.nn.log_softmax(t.action_head(tparams, feats))  # [B, k, 256]
         cand = (all_score[-1][..., None] + child_logp).reshape(b, -1)
         score, flat = jax.lax.top_k(cand, k)
@@ -242,7 +242,7 @@ def advance(tparams, dparams, model: target_model.Model, s: DecodeState, v: Veri
     rel = slots[None] - dcache.length[:, None]
     causal = (rel[:, None, :] >= 0) & (rel[:, None, :] <= j[..., None])  # [B, n, S]
     mask = (dcache.key_mask & (rel < 0))[:, None, :] | causal
-    feats, dc = drafter.step(dparams, cfg, dcache, t.embed_tokens(tparams, v.tokens), v.hidden,
+    feats, dc = drafter.cached_pass(dparams, cfg, dcache, t.embed_tokens(tparams, v.tokens), v.hidden,
                              dcache.length[:, None] + j, dcache.length, mask)
     new_len = dcache.length + 1 + v.n_accepted
     dc = dc.replace(key_mask=dcache.key_mask | ((rel >= 0) & (slots[None] < new_len[:, None])), length=new_len)

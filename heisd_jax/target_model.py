@@ -124,14 +124,14 @@ def ar_decode(params, model, obs: Observation):
     b = first.shape[0]
     zero, causal1 = jnp.zeros((b, 1), jnp.int32), jnp.ones((b, 1, 1), bool)
 
-    def step(carry, _):
+    def next_token(carry, _):
         cache, tok = carry
         lg, _, blk = t.decode(params, cache, tok[:, None], zero, causal1)
         cache = t.commit(cache, blk, zero, jnp.ones((b,), jnp.int32))
         nxt = greedy_ids(t.cfg, lg[:, 0])
         return (cache, nxt), nxt
 
-    _, rest = jax.lax.scan(step, (cache, first), None, length=ACTION_DIM - 1,
+    _, rest = jax.lax.scan(next_token, (cache, first), None, length=ACTION_DIM - 1,
                            unroll=ACTION_DIM - 1 if t.cfg.unroll else 1)
     return jnp.concatenate([first[:, None], rest.T], 1), ACTION_DIM
 

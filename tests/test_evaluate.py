@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from envs import tasks as tasks_lib
+from envs import language, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from heisd_jax import checkpoint, evaluate as ev, methods, results_io, target_model, vla, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
@@ -24,7 +24,7 @@ TASKS = "left_block_plate,pick_red_block"
 def tiny_ckpt(tmp_path_factory):
     path = tmp_path_factory.mktemp("ar") / "vla"
     tok = ActionTokenizer((-1.0,) * 7, (1.0,) * 7, CFG.vocab_size)
-    checkpoint.save_policy(path, vla.init_params(CFG, jax.random.PRNGKey(3)), CFG, tok)
+    checkpoint.save_policy(path, vla.init_params(CFG, jax.random.PRNGKey(3)), CFG, tok, text_vocab=language.VOCAB)
     return path
 
 

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from envs import demos
+from envs import demos, language
 from heisd_jax import checkpoint, data, train, vla
 from heisd_jax.tokenizer import ActionTokenizer
 
@@ -74,7 +74,7 @@ def policy_ckpt(tmp_path_factory):
     params = vla.init_params(CFG, jax.random.PRNGKey(1))
     tok = ActionTokenizer((-0.5,) * 6 + (-1.0,), (0.5,) * 6 + (1.0,), CFG.vocab_size)
     path = tmp_path_factory.mktemp("c") / "vla"
-    checkpoint.save_policy(path, params, CFG, tok)
+    checkpoint.save_policy(path, params, CFG, tok, text_vocab=language.VOCAB)
     return path, params, tok
 
 

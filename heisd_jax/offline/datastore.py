@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from heisd_jax import kinematics, target_model, vla
+from envs import demos, tasks as tasks_lib
+from heisd_jax import data, kinematics, target_model, vla
 from heisd_jax.retrieval import FORMAT, Datastore, KeySpec, make_keys
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
@@ -69,8 +70,6 @@ def strided_episode_split(n_episodes: int, holdout: float) -> tuple[list[int], l
 def demo_features(path: str | os.PathLike, episodes: list[int] | None = None) -> np.ndarray:
     """The kinematic features (`heisd_jax.kinematics.features`) of every step of the demos
     [N, 5], the previous velocity being the episode's previous step's (zero at the start)."""
-    from envs import demos  # noqa: PLC0415
-
     ds = demos.DemoDataset(path)
     cols = {k: [] for k in ("ee_vel", "ee_ang_vel", "ee_acc", "gripper_vel", "prev")}
     for i in range(len(ds)) if episodes is None else episodes:  # gathered on the host, one device call
@@ -88,8 +87,6 @@ def build_from_demos(path: str | os.PathLike, spec: KeySpec, tok: ActionTokenize
     """A datastore of a demos dataset (envs.demos), keyed by global task index. `actions`
     [N, 7] (the chosen episodes' steps in order) replaces the recorded actions in the keys'
     histories and the values, e.g. with what a policy executed where it drove (`executed_actions`)."""
-    from envs import demos, tasks as tasks_lib  # noqa: PLC0415
-
     ds = demos.DemoDataset(path)
     names = [t.name for t in tasks_lib.ALL_TASKS]
     idx = list(range(len(ds)) if episodes is None else episodes)
@@ -130,8 +127,6 @@ def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | N
     `build_from_demos` order). Retrieved drafts are verified against the target's choices,
     and the target imitates the expert only approximately: values it would choose itself
     are accepted far more often (as EAGLE trains its drafter on the target's tokens)."""
-    from heisd_jax import data  # noqa: PLC0415 (data imports envs)
-
     steps = data.load_steps(str(path), episodes)
     decode = jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])
     return in_batches(lambda idx: decode(tparams, vla.Observation(image=steps.image[idx],
