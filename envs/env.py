@@ -92,7 +92,7 @@ class TabletopEnv:
         device = jax.local_devices()[0]
         self.model = mjx.put_model(self.mj_model, device=device)
         self.ids = scene.scene_ids(self.mj_model)
-        self.instructions = jnp.asarray(np.stack([language.encode(t.instruction) for t in self.tasks]))
+        self.instructions = jnp.asarray(np.stack([language.to_ids(t.instruction) for t in self.tasks]))
         self.base_rgb = jnp.asarray(self.mj_model.geom_rgba[:, :3], jnp.float32)
         self.palette = jnp.asarray(np.array(list(scene.PALETTE.values())), jnp.float32)
         d = mujoco.MjData(self.mj_model)

@@ -23,7 +23,7 @@ WORD_TO_ID = {w: i for i, w in enumerate(VOCAB)}
 assert WORD_TO_ID[PAD] == PAD_ID
 
 
-def encode(text: str, length: int = MAX_INSTRUCTION_TOKENS, unknown: str = "unk") -> np.ndarray:
+def to_ids(text: str, length: int = MAX_INSTRUCTION_TOKENS, unknown: str = "unk") -> np.ndarray:
     """Instruction text -> [length] int32 ids (BOS, words, EOS, PAD...). A word outside the
     vocabulary (the words of the suites' instructions, which the shipped target was trained on)
     becomes UNK with `unknown="unk"` (the policy then sees an instruction it never saw; it
@@ -41,6 +41,6 @@ def encode(text: str, length: int = MAX_INSTRUCTION_TOKENS, unknown: str = "unk"
     return np.array(ids + [WORD_TO_ID[PAD]] * (length - len(ids)), np.int32)
 
 
-def decode(ids) -> str:
+def to_text(ids) -> str:
     words = [VOCAB[int(i)] for i in ids]
     return " ".join(w for w in words if w not in (PAD, BOS, EOS))

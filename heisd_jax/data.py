@@ -40,7 +40,7 @@ def load_steps(path: str, episodes: list[int] | None = None) -> StepTable:
         cols["image"].append(ep["image"])
         cols["proprio"].append(ep["proprio"])
         cols["action"].append(ep["action"])
-        cols["instruction"].append(np.repeat(language.encode(ds.episodes[i]["instruction"])[None], n, 0))
+        cols["instruction"].append(np.repeat(language.to_ids(ds.episodes[i]["instruction"])[None], n, 0))
     if not cols["action"]:
         raise ValueError(f"{path}: no episodes to load")
     return StepTable(*(np.concatenate(cols[k]) for k in ("image", "proprio", "instruction", "action")))
@@ -80,4 +80,4 @@ def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokeni
     i = jax.random.randint(k_idx, (batch,), 0, table.size)
     obs = vla.Observation(image=random_shift(table.image[i], k_shift, image_shift, n_views), instruction=table.instruction[i],
                           proprio=table.proprio[i])
-    return obs, tok.encode(table.action[i])
+    return obs, tok.to_ids(table.action[i])

@@ -200,7 +200,7 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
         logits, hidden, x, cache = t.prefill(tp, obs)
 
         def separate(cache):
-            blg, bh, kv = t.decode(tp, cache, *block)
+            blg, bh, kv = t.to_actions(tp, cache, *block)
             return blg, bh.astype(cfg.dtype), kv
         blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
                                                   lambda cache: zeros(jax.eval_shape(separate, cache)), cache)
@@ -474,7 +474,7 @@ def step(params, model: target_model.Model, hcfg: HybridConfig, key_spec: retrie
     tokens, stats, *new_budget = compact_rows(run, (obs, cand, valid, use_retrieval), skip, cand[:, 0],
                                               hcfg.row_buckets, fill)
     bstate = new_budget[0] if auto else bstate
-    actions = tok.decode(tokens)
+    actions = tok.to_actions(tokens)
     whole = stats["retrieval_whole"] > 0
     if hcfg.recent_candidates:
         repeated = state.recent_valid[:, 0] & jnp.all(tokens == state.recent[:, 0], -1)

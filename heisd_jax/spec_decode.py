@@ -307,7 +307,7 @@ def decode_action(params, model: target_model.Model, obs: vla.Observation,
     (the default) its tokens equal AR's.
     The observation is checked first (`vla.check_observation`, outside jit). Returns action
     token ids [B, 7] int32 in [cfg.first_action_id, cfg.vocab_size) (bin = id -
-    first_action_id; `ActionTokenizer.decode` maps ids to actions) and per-row statistics,
+    first_action_id; `ActionTokenizer.to_actions` maps ids to actions) and per-row statistics,
     each [B] float32: target_passes, tokens (= 7), invalid, and for speculative decoding also
     drafter_passes and rounds. Under an outer jit the value checks cannot raise: a row whose
     proprio is not finite or whose instruction ids are out of range gets tokens

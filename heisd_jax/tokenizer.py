@@ -4,7 +4,7 @@ Each motion dimension is first normalised to [-1, 1] with the training actions' 
 99th percentiles (clipped outside them); the gripper dimension is already in [-1, 1] and is
 not renormalised (OpenVLA's normalisation mask). [-1, 1] is cut into N_BINS equal bins;
 bin b maps onto vocabulary id `vocab_size - N_BINS + b`, a monotone map, so the distance
-between two action token ids equals their bin distance. Encode/decode are jittable.
+between two action token ids equals their bin distance. `to_ids` / `to_actions` are jittable.
 """
 
 from __future__ import annotations
@@ -69,13 +69,13 @@ class ActionTokenizer:
         x = -1.0 + (bins.astype(jnp.float32) + 0.5) * self.bin_width
         return self.unnormalize(x)
 
-    def encode(self, action):
+    def to_ids(self, action):
         """[..., 7] actions -> [..., 7] vocabulary ids."""
         return self.to_bins(action) + self.first_action_id
 
-    def decode(self, token_ids):
+    def to_actions(self, token_ids):
         """[..., 7] vocabulary ids -> [..., 7] actions (ids outside the action range clip).
-        `INVALID_ID` decodes to 0.0, the zero action: no arm motion, the gripper half open,
+        `INVALID_ID` gives 0.0, the zero action: no arm motion, the gripper half open,
         rather than the full-speed move of a clipped id."""
         actions = self.from_bins(jnp.clip(token_ids - self.first_action_id, 0, N_BINS - 1))
         return jnp.where(token_ids == INVALID_ID, 0.0, actions)

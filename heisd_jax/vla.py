@@ -250,7 +250,7 @@ def observation_valid(cfg: VLAConfig, obs: Observation) -> jnp.ndarray:
 def mark_invalid(cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, stats: dict) -> tuple[jnp.ndarray, dict]:
     """A decoding's (tokens [B, 7], per-row stats) with the rows of an invalid observation
     (`observation_valid`) made explicit: their tokens are `tokenizer.INVALID_ID` (which
-    `ActionTokenizer.decode` turns into the zero action) and `stats["invalid"]` is 1.0 there,
+    `ActionTokenizer.to_actions` turns into the zero action) and `stats["invalid"]` is 1.0 there,
     0.0 elsewhere (an evaluator sums it per episode). Valid rows are unchanged."""
     valid = observation_valid(cfg, obs)
     return (jnp.where(valid[:, None], tokens, INVALID_ID),

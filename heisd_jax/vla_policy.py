@@ -37,7 +37,7 @@ def decoding_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer,
     def act(params, states, pstate, keys):
         obs = observation(states)
         tokens, stats = vla.mark_invalid(cfg, obs, *decode(params, cfg, obs))
-        return tok.decode(tokens), pstate, stats
+        return tok.to_actions(tokens), pstate, stats
 
     return Policy(name=name, init=lambda params, states: (), act=act, params=params, meta=dict(cfg=cfg, tok=tok, **meta))
 
@@ -71,7 +71,7 @@ def hybrid_policy(name: str, params, cfg: vla.VLAConfig, tok: ActionTokenizer, h
         actions, tokens, pstate, stats = hybrid.step(params, cfg, hcfg, key_spec, tok, pstate, obs, kin,
                                                      gidx[states.info.task_id])
         tokens, stats = vla.mark_invalid(cfg, obs, tokens, stats)
-        return jnp.where((tokens == INVALID_ID)[:, :1], tok.decode(tokens), actions), pstate, stats
+        return jnp.where((tokens == INVALID_ID)[:, :1], tok.to_actions(tokens), actions), pstate, stats
 
     return Policy(name=name, init=init, act=act, params=params,
                   meta=dict(cfg=cfg, tok=tok, hcfg=hcfg, spec=hcfg.spec, key_spec=key_spec))

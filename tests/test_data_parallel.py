@@ -60,7 +60,7 @@ step1, stepm = train.make_train_step(cfg, tcfg, tok), train.make_train_step(cfg,
 compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key))
 
 tparams = state0("vla").params
-labels = tok.encode(table.action)
+labels = tok.to_ids(table.action)
 d1, dm = train.make_drafter_step(cfg, tcfg), train.make_drafter_step(cfg, tcfg, mesh)
 compare("drafter", twice(d1, state0("drafter"), tparams, t_single, labels, key),
         twice(dm, whole(mesh, state0("drafter")), whole(mesh, tparams), t_mesh, whole(mesh, labels), key))

@@ -126,8 +126,8 @@ def test_invalid_rows_under_jit_decode_to_the_zero_action_and_are_counted(tiny_h
         np.testing.assert_array_equal(tokens[2:], np.asarray(ar_tokens)[2:])
         np.testing.assert_array_equal(stats["invalid"], [1.0, 1.0] + [0.0] * (b - 2))
     tok = ActionTokenizer(q01=(-0.5,) * 7, q99=(0.5,) * 7, vocab_size=CFG.vocab_size)
-    actions = np.asarray(tok.decode(jnp.asarray(tokens)))
+    actions = np.asarray(tok.to_actions(jnp.asarray(tokens)))
     np.testing.assert_array_equal(actions[:2], 0.0)
-    np.testing.assert_array_equal(actions[2:], np.asarray(tok.decode(ar_tokens))[2:])
+    np.testing.assert_array_equal(actions[2:], np.asarray(tok.to_actions(ar_tokens))[2:])
     with pytest.raises(ValueError, match="non-finite"):  # outside jit the same input is refused
         heisd_jax.decode_action(params["target"], CFG, bad)

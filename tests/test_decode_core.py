@@ -54,18 +54,18 @@ def test_text_constants_match_the_env_vocabulary():
     assert cfg.text_vocab == len(language.VOCAB) == observation.TEXT_VOCAB
     assert cfg.text_len == language.MAX_INSTRUCTION_TOKENS == observation.TEXT_LEN
     assert language.WORD_TO_ID[language.PAD] == observation.PAD_ID
-    assert language.encode("pick up the red block")[-1] == observation.PAD_ID
+    assert language.to_ids("pick up the red block")[-1] == observation.PAD_ID
 
 
 def test_unknown_instruction_words_are_unk_or_refused_as_asked():
-    ids = language.encode("pick up the orange block")
+    ids = language.to_ids("pick up the orange block")
     assert language.WORD_TO_ID[language.UNK] in ids.tolist()
     with pytest.raises(ValueError, match=r"words outside the vocabulary: \['orange'\]"):
-        language.encode("pick up the orange block", unknown="error")
-    np.testing.assert_array_equal(language.encode("pick up the red block", unknown="error"),
-                                  language.encode("pick up the red block"))
+        language.to_ids("pick up the orange block", unknown="error")
+    np.testing.assert_array_equal(language.to_ids("pick up the red block", unknown="error"),
+                                  language.to_ids("pick up the red block"))
     with pytest.raises(ValueError, match="valid: unk, error"):
-        language.encode("pick up the red block", unknown="ignore")
+        language.to_ids("pick up the red block", unknown="ignore")
 
 
 def test_env_and_model_observations_agree_field_for_field():

@@ -87,7 +87,7 @@ def test_ar_policy_acts_on_a_batch_like_ar_decode(tiny_ckpt, compiled):
         jax.random.PRNGKey(0), (2, 64, 64, 3), 0, 255).astype(np.uint8)))
     action, _, stats = pol.act(pol.params, state, (), None)
     tokens, _ = target_model.ar_decode(params, cfg, vla_policy.observation(state))
-    np.testing.assert_allclose(np.asarray(action), np.asarray(tok.decode(tokens)), rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(action), np.asarray(tok.to_actions(tokens)), rtol=1e-6)
     assert action.shape == (2, 7) and np.all(np.asarray(stats["target_passes"]) == 7)
 
 

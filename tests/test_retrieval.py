@@ -91,14 +91,14 @@ def test_build_from_demos_keys_each_step_by_its_history(tmp_path):
     keys = np.asarray(store.keys)
     np.testing.assert_array_equal(keys[n, :14], 0)  # first step of the second episode: no history
     np.testing.assert_allclose(keys[n + 2, :14], steps["action"][n:n + 2].reshape(-1), rtol=1e-6)
-    np.testing.assert_array_equal(np.asarray(store.tokens), np.asarray(TOK.encode(jnp.asarray(steps["action"]))))
+    np.testing.assert_array_equal(np.asarray(store.tokens), np.asarray(TOK.to_ids(jnp.asarray(steps["action"]))))
     # Episodes a policy drove: what it executed (here bin centres, as a detokenized action is)
     # replaces the recorded labels in the keys' histories and in the values.
-    executed = np.asarray(TOK.decode(TOK.encode(jnp.asarray(-steps["action"]))), np.float32)
+    executed = np.asarray(TOK.to_actions(TOK.to_ids(jnp.asarray(-steps["action"]))), np.float32)
     driven = datastore.build_from_demos(tmp_path / "d", SPEC, TOK, actions=executed)
     np.testing.assert_allclose(np.asarray(driven.keys)[n + 2, :14], np.clip(executed[n:n + 2], -1, 1).reshape(-1),
                                rtol=1e-6)
-    np.testing.assert_array_equal(np.asarray(driven.tokens), np.asarray(TOK.encode(jnp.asarray(-steps["action"]))))
+    np.testing.assert_array_equal(np.asarray(driven.tokens), np.asarray(TOK.to_ids(jnp.asarray(-steps["action"]))))
     np.testing.assert_array_equal(np.asarray(driven.keys)[:, 14:], keys[:, 14:])  # proprio unchanged
     with pytest.raises(ValueError, match="11 actions given for 12 steps"):
         datastore.build_from_demos(tmp_path / "d", SPEC, TOK, actions=executed[:-1])

@@ -85,7 +85,7 @@ def _recent(tok, cols, r):
     ids, valid = [], []
     for a, b in zip(starts, list(starts[1:]) + [len(cols["start"])]):
         hist = datastore.episode_history(np.asarray(cols["action"][a:b], np.float32), r)[:, ::-1]
-        ids.append(np.asarray(tok.encode(jnp.asarray(hist))))
+        ids.append(np.asarray(tok.to_ids(jnp.asarray(hist))))
         valid.append(np.arange(b - a)[:, None] > np.arange(r)[None, :])
     return np.concatenate(ids).astype(np.int32), np.concatenate(valid)
 
@@ -138,8 +138,8 @@ def main(argv):
     def with_feat(k, f):
         return np.concatenate([k, (f - mu) / sd * scale], 1)
 
-    values = {"target": np.asarray(tok.encode(jnp.asarray(held["action"]))),
-              "expert": np.asarray(tok.encode(jnp.asarray(held["label"])))}
+    values = {"target": np.asarray(tok.to_ids(jnp.asarray(held["action"]))),
+              "expert": np.asarray(tok.to_ids(jnp.asarray(held["label"])))}
 
     def variant(store, keys=None, recent=False, retrieved=True):
         """A datastore to measure: its store, the held-out keys (None: make_keys), whether the

@@ -43,7 +43,7 @@ def build(spec: KeySpec, tok: ActionTokenizer, episodes) -> Datastore:
     if not acts:
         raise ValueError("no episodes to build a datastore from")
     k = np.asarray(make_keys(spec, tok, np.concatenate(hist), np.concatenate(props)), np.float32)
-    tokens = np.asarray(tok.encode(jnp.asarray(np.concatenate(acts))))
+    tokens = np.asarray(tok.to_ids(jnp.asarray(np.concatenate(acts))))
     return Datastore.of(k, tokens, np.concatenate(task))
 
 
@@ -118,7 +118,7 @@ def executed_actions(tparams, cfg, tok: ActionTokenizer, path: str | os.PathLike
                      episodes: list[int] | None = None) -> np.ndarray:
     """The actions [N, 7] a target executed on the steps of episodes it drove alone: its
     greedy tokens there (`target_values`), detokenized."""
-    return np.asarray(tok.decode(jnp.asarray(target_values(tparams, cfg, path, episodes))), np.float32)
+    return np.asarray(tok.to_actions(jnp.asarray(target_values(tparams, cfg, path, episodes))), np.float32)
 
 
 def target_values(tparams, cfg, path: str | os.PathLike, episodes: list[int] | None = None,
