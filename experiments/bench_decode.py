@@ -72,7 +72,7 @@ def bench(params, cfg: vla.VLAConfig, batch: int, reps: int, dparams=None) -> di
     prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
     _, _, cache = prefill(params, obs)
     tok = jnp.full((batch, 1), cfg.first_action_id, jnp.int32)
-    decode1 = jax.jit(lambda p, c, t: vla.decode(p, cfg, c, t, jnp.zeros((batch, 1), jnp.int32),
+    decode1 = jax.jit(lambda p, c, t: vla.cached_pass(p, cfg, c, t, jnp.zeros((batch, 1), jnp.int32),
                                                  jnp.ones((batch, 1, 1), bool))[0])
     ar = jax.jit(lambda p, o: target_model.ar_decode(p, cfg, o)[0])
     t = {"prefill": median_seconds(lambda: prefill(params, obs)[0], reps),

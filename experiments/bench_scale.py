@@ -116,7 +116,7 @@ def main(argv):
     # the pure pieces (in-graph timing loops them), and their jitted calls
     pieces = {"prefill": lambda p, o: vla.prefill(p, cfg, o)[0],
               "prefill+block": lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0],
-              "decode": lambda p, c, tk, dp, m: vla.decode(p, cfg, c, tk, dp, m)[0],
+              "decode": lambda p, c, tk, dp, m: vla.cached_pass(p, cfg, c, tk, dp, m)[0],
               "drafter": lambda dp, c, e, pos, slot, m: drafter.cached_pass(dp, cfg, c, e, e, pos, slot, m)[0]}
     jitted = {k: jax.jit(f) for k, f in pieces.items()}
     prefill_cache = jax.jit(lambda p, o: vla.prefill(p, cfg, o)[2])

@@ -142,7 +142,7 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
         toks = jnp.full((batch, t), cfg.first_action_id, jnp.int32)
         depth = jnp.broadcast_to(jnp.arange(t), (batch, t))
         intra = jnp.broadcast_to(jnp.tril(jnp.ones((t, t), bool)), (batch, t, t))
-        pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: target.decode(tp, c, a, b, i)[0],
+        pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: target.cached_pass(tp, c, a, b, i)[0],
                                          tp, cache, toks, depth, intra)
     key_ok = vla.prompt_key_mask(cfg, obs.instruction)
     root_emb = target.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))

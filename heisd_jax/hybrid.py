@@ -200,7 +200,7 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
         logits, hidden, x, cache = t.prefill(tp, obs)
 
         def separate(cache):
-            blg, bh, kv = t.to_actions(tp, cache, *block)
+            blg, bh, kv = t.cached_pass(tp, cache, *block)
             return blg, bh.astype(cfg.dtype), kv
         blogits, bhidden, block_kv = jax.lax.cond(jnp.any(verify_rows), separate,
                                                   lambda cache: zeros(jax.eval_shape(separate, cache)), cache)

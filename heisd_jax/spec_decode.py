@@ -162,7 +162,7 @@ def verify(tparams, model: target_model.Model, spec: SpecConfig, cache: vla.KVCa
     d = spec.depth
     block, depth, intra = tree_block(t, root, tree, sel)
     sel_bins, sel_depth, anc = block[:, 1:] - cfg.first_action_id, depth[:, 1:], intra[:, 1:, 1:]
-    logits, hidden, blk = t.decode(tparams, cache, block, depth, intra)
+    logits, hidden, blk = t.cached_pass(tparams, cache, block, depth, intra)
     greedy = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B, 1+n] bins
 
     # Block position of each node's parent: 0 for the root, else 1 + its index in sel.

@@ -8,7 +8,8 @@ its cache: it holds a `TargetModel` and calls these members only.
   prefill_with_block(params, obs, tokens, depth, intra)
                                               -> the same, with block logits [B, T, V], block
                                                  hidden [B, T, D] and the block (one pass)
-  decode(params, cache, tokens, depth, intra) -> logits [B, T, V], hidden [B, T, D], block:
+  cached_pass(params, cache, tokens, depth, intra)
+                                              -> logits [B, T, V], hidden [B, T, D], block:
                                                  T tokens against the cache, which is unchanged
   commit(cache, block, src, n)                -> the cache with the block's tokens at offsets
                                                  src[b, :n[b]] appended, in that order
@@ -51,7 +52,7 @@ class TargetModel(Protocol):
 
     def prefill_with_block(self, params, obs: Observation, tokens, depth, intra): ...
 
-    def decode(self, params, cache, tokens, depth, intra): ...
+    def cached_pass(self, params, cache, tokens, depth, intra): ...
 
     def commit(self, cache, block, src, n): ...
 
@@ -77,8 +78,8 @@ class VLATarget:
     def prefill_with_block(self, params, obs: Observation, tokens, depth, intra):
         return vla.prefill_with_block(params, self.cfg, obs, tokens, depth, intra)
 
-    def decode(self, params, cache: vla.KVCache, tokens, depth, intra):
-        return vla.decode(params, self.cfg, cache, tokens, depth, intra)
+    def cached_pass(self, params, cache: vla.KVCache, tokens, depth, intra):
+        return vla.cached_pass(params, self.cfg, cache, tokens, depth, intra)
 
     def commit(self, cache: vla.KVCache, block: vla.Block, src, n) -> vla.KVCache:
         return vla.commit(cache, block, src, n)
@@ -97,7 +98,7 @@ def as_target(model: Any) -> TargetModel:
     """`model` itself if it is a target, else the shipped VLA of config `model`."""
     if isinstance(model, vla.VLAConfig):
         return VLATarget(model)
-    missing = [m for m in ("cfg", "prefill", "prefill_with_block", "decode", "commit", "select_cache",
+    missing = [m for m in ("cfg", "prefill", "prefill_with_block", "cached_pass", "commit", "select_cache",
                            "embed_tokens", "action_head") if not hasattr(model, m)]
     if missing:
         raise TypeError(f"{type(model).__name__} is neither a vla.VLAConfig nor a TargetModel (missing {missing})")
@@ -126,7 +127,7 @@ def ar_decode(params, model, obs: Observation):
 
     def next_token(carry, _):
         cache, tok = carry
-        lg, _, blk = t.decode(params, cache, tok[:, None], zero, causal1)
+        lg, _, blk = t.cached_pass(params, cache, tok[:, None], zero, causal1)
         cache = t.commit(cache, blk, zero, jnp.ones((b,), jnp.int32))
         nxt = greedy_ids(t.cfg, lg[:, 0])
         return (cache, nxt), nxt
@@ -160,7 +161,7 @@ def ar_continue(params, model, cache, out: jnp.ndarray, n_out: jnp.ndarray):
         cache, out, n_out, passes = carry
         active = n_out < ACTION_DIM
         last = out[rows, jnp.clip(n_out - 1, 0, ACTION_DIM - 1)]
-        lg, _, blk = t.decode(params, cache, last[:, None], zero, causal1)
+        lg, _, blk = t.cached_pass(params, cache, last[:, None], zero, causal1)
         cache = t.commit(cache, blk, zero, active.astype(jnp.int32))
         out = out.at[rows, jnp.where(active, n_out, ACTION_DIM)].set(greedy_ids(t.cfg, lg[:, 0]), mode="drop")
         return cache, out, n_out + active, passes + active

@@ -4,7 +4,7 @@ positions, SwiGLU) emitting the action's 7 tokens from the last 256 vocabulary i
 
 Everything is a pure function of (params, cache, inputs):
     prefill(params, cfg, obs)                     prompt pass -> logits, hidden, cache
-    decode(params, cfg, cache, tokens, intra)     T tokens against the cache (AR: T = 1;
+    cached_pass(params, cfg, cache, tokens, ...)  T tokens against the cache (AR: T = 1;
                                                   tree verification: T nodes + tree mask)
                                                   -> logits, hidden, their keys/values
     commit(cache, block, src, n)                  write n of those tokens into the cache
@@ -493,12 +493,12 @@ def prefill_features(params, cfg: VLAConfig, obs: Observation):
 def prefill_with_block(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, depth: jnp.ndarray,
                        intra: jnp.ndarray):
     """The prompt and a block of T draft tokens [B, T] in ONE pass (verification fused into
-    the prefill). The block is laid out as `decode` lays it out after a prefill: depth [B, T]
+    the prefill). The block is laid out as `cached_pass` lays it out after a prefill: depth [B, T]
     = position offset from the prompt's end, intra [B, T, T] = which block tokens each may
     attend to (besides the whole prompt). Returns (last prompt logits [B, V], prompt hidden
     [B, P, D], prompt embeddings, block logits [B, T, V], block hidden [B, T, D], cache,
     block keys/values); the cache holds the prompt (length P), and `commit(cache, block,
-    ...)` keeps an accepted path exactly as after `decode`."""
+    ...)` keeps an accepted path exactly as after `cached_pass`."""
     logits, hidden, x, cache, blk = _prefill(params, cfg, obs, (tokens, depth, intra))
     p = cfg.prompt_len
     return logits[:, 0], hidden[:, :p], x, logits[:, 1:], hidden[:, p:], cache, blk
@@ -533,7 +533,7 @@ def _prefill(params, cfg: VLAConfig, obs: Observation, block):
 
 
 @at_config_precision
-def decode(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
+def cached_pass(params, cfg: VLAConfig, cache: KVCache, tokens: jnp.ndarray, depth: jnp.ndarray, intra: jnp.ndarray):
     """T tokens [B, T] against the cache (which is not changed).
 
     depth [B, T]: each token's position offset from the cache length (AR: 0; tree: node

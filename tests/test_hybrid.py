@@ -29,7 +29,7 @@ def test_prefill_with_block_equals_prefill_then_decode(tiny_hybrid):
     block = hybrid.candidate_block(cand)
     lg, h, x, blg, bh, cache, kv = vla.prefill_with_block(tp, CFG, obs, *block)
     lg2, h2, x2, cache2 = vla.prefill_features(tp, CFG, obs)
-    blg2, bh2, kv2 = vla.decode(tp, CFG, cache2, *block)
+    blg2, bh2, kv2 = vla.cached_pass(tp, CFG, cache2, *block)
     np.testing.assert_allclose(np.asarray(lg), np.asarray(lg2), atol=2e-4)
     np.testing.assert_allclose(np.asarray(blg), np.asarray(blg2), atol=2e-4)
     for mine, ref in ((cache.k, cache2.k), (kv.k, kv2.k), (kv.v, kv2.v)):

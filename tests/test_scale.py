@@ -74,9 +74,9 @@ def test_cached_decoding_and_tree_verification_are_exact(expanded):
     outs = []
     for params, c in ((tp, CFG), (big_tp, cfg)):
         _, _, cache = vla.prefill(params, c, obs)
-        logits, hidden, blk = vla.decode(params, c, cache, block, depth, intra)
+        logits, hidden, blk = vla.cached_pass(params, c, cache, block, depth, intra)
         cache = vla.commit(cache, blk, jnp.zeros((b, 2), jnp.int32).at[:, 1].set(3), jnp.full((b,), 2))
-        after, _, _ = vla.decode(params, c, cache, tokens[:, 3:4], jnp.zeros((b, 1), jnp.int32),
+        after, _, _ = vla.cached_pass(params, c, cache, tokens[:, 3:4], jnp.zeros((b, 1), jnp.int32),
                                  jnp.ones((b, 1, 1), bool))
         fused = vla.prefill_with_block(params, c, obs, block, depth, intra)[3]
         outs.append([vla.action_logits(c, y) for y in (logits, after, fused)] + [hidden[..., :CFG.d_model]])

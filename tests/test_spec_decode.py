@@ -118,10 +118,10 @@ def test_tree_verification_equals_sequential_decoding_of_each_path(params):
     tree = sd.draft_tree(dp, tp, CFG, spec, dcache, feat)
     sel = sd.select_nodes(tree, spec.total_tokens)
     block, depth, intra = sd.tree_block(CFG, root, tree, sel)
-    tree_logits, _, _ = vla.decode(tp, CFG, cache, block, depth, intra)
+    tree_logits, _, _ = vla.cached_pass(tp, CFG, cache, block, depth, intra)
     one = jnp.ones((B, 1, 1), bool)
     zero = jnp.zeros((B, 1), jnp.int32)
-    step = jax.jit(lambda c, t: vla.decode(tp, CFG, c, t, zero, one))
+    step = jax.jit(lambda c, t: vla.cached_pass(tp, CFG, c, t, zero, one))
     commit = jax.jit(lambda c, kv: vla.commit(c, kv, zero, jnp.ones((B,), jnp.int32)))
     intra, tree_logits = np.asarray(intra), np.asarray(tree_logits)
     for n in range(1, block.shape[1]):  # node n: decode root + row b's path one token at a time
@@ -148,7 +148,7 @@ def test_cache_after_commit_equals_one_by_one_decoding():
     assert n_acc.max() > 0
     one = jnp.ones((B, 1, 1), bool)
     zero = jnp.zeros((B, 1), jnp.int32)
-    step = jax.jit(lambda c, t: vla.commit(c, vla.decode(tp, CFG, c, t, zero, one)[2], zero, jnp.ones((B,), jnp.int32)))
+    step = jax.jit(lambda c, t: vla.commit(c, vla.cached_pass(tp, CFG, c, t, zero, one)[2], zero, jnp.ones((B,), jnp.int32)))
     for b in range(B):
         toks = [int(root[b])] + [int(t) for t in np.asarray(v.tokens[b, :n_acc[b]])]
         c = cache

@@ -48,7 +48,7 @@ class HistoryTarget:
         logits, hidden, x, blogits, bhidden, _, _ = vla.prefill_with_block(params, self.cfg, obs, tokens, depth, intra)
         return logits, hidden, x, blogits, bhidden, self._empty(obs), tokens
 
-    def decode(self, params, cache: History, tokens, depth, intra):
+    def cached_pass(self, params, cache: History, tokens, depth, intra):
         b, t = tokens.shape
         k = self.slots
         valid = jnp.arange(k)[None] < cache.n[:, None]  # [B, K]

@@ -32,7 +32,7 @@ def model():
     fns = dict(
         forward=jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t)),
         prefill=jax.jit(lambda p, o: vla.prefill(p, CFG, o)),
-        decode=jax.jit(lambda p, c, t, d, m: vla.decode(p, CFG, c, t, d, m)),
+        decode=jax.jit(lambda p, c, t, d, m: vla.cached_pass(p, CFG, c, t, d, m)),
         ar=jax.jit(lambda p, o: target_model.ar_decode(p, CFG, o)[0]),
     )
     return params, fns
