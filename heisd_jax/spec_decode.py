@@ -321,7 +321,8 @@ def decode_action(params, model: target_model.Model, obs: vla.Observation,
     return _decode_action_jit(params, obs, t, spec)
 
 
-def _decode_action(params, obs: vla.Observation, t: target_model.TargetModel, spec):
+def _decode_action(params, obs: vla.Observation, model: target_model.Model, spec):
+    t = target_model.as_target(model)
     if spec is None:
         tokens, stats = target_model.ar_action(params, t, obs)
     else:
