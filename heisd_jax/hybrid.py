@@ -245,7 +245,7 @@ def continue_drafter(tp, dp, t: target_model.TargetModel, spec: spec_decode.Spec
     """`decode`'s tail with `continuation="drafter"`: the drafter reads the prompt, then
     the accepted prefix (token 1 the root, tokens 2..acc its path, the target's token acc+1
     the bonus), and draft-verify rounds (`spec`) finish each row. Returns tokens [B, 7]
-    (skipped rows: whatever) and stats."""
+    (skipped rows: meaningless, `decode` replaces them) and stats."""
     b = a.acc.shape[0]
     first = jnp.where(a.acc >= 1, a.best[:, 0], a.greedy_first)
     s0 = spec_decode.start(tp, dp, t, a.logits, a.hidden, a.prompt_x, a.cache, obs, first=first,

@@ -133,8 +133,7 @@ def tree_block(model: target_model.Model, root: jnp.ndarray, tree: Tree, sel: jn
     """The verification block of [root, nodes sel]: token ids [B, 1+n], depth offsets
     [B, 1+n] (position = cache length + depth) and the tree mask [B, 1+n, 1+n] (each node
     sees the root, its ancestors and itself)."""
-    t = target_model.as_target(model)
-    cfg = t.cfg
+    cfg = target_model.as_target(model).cfg
     b, n = sel.shape
     anc = jnp.take_along_axis(jnp.take_along_axis(tree.anc, sel[..., None], 1), sel[:, None, :], 2)  # [B, n, n]
     block = jnp.concatenate([root[:, None], jnp.take_along_axis(tree.bins, sel, 1) + cfg.first_action_id], 1)
@@ -150,7 +149,7 @@ class Verified:
     path: jnp.ndarray  # [B, depth] block positions of the accepted path (valid: j < n_accepted)
     tokens: jnp.ndarray  # [B, depth + 1] emitted tokens: the path then the bonus (valid: j <= n_accepted)
     hidden: jnp.ndarray  # [B, depth + 1, D] target hidden of root + path (valid: j <= n_accepted)
-    cache: vla.KVCache  # target cache with root + path committed
+    cache: object  # the target's cache (its own pytree) with root + path committed
 
 
 def verify(tparams, model: target_model.Model, spec: SpecConfig, cache: vla.KVCache, root: jnp.ndarray, tree: Tree,
@@ -197,7 +196,7 @@ class DecodeState:
     """Where a row stands in decoding one action: the target cache holds everything before
     `root` (the last emitted token, not yet fed to the target); the drafter's cache holds the
     same committed tokens and `feat` is its predicted feature at the root's position."""
-    cache: vla.KVCache
+    cache: object  # the target's cache (its own pytree)
     dcache: vla.KVCache
     root: jnp.ndarray  # [B] token id
     feat: jnp.ndarray  # [B, D]
@@ -214,7 +213,7 @@ def start(tparams, dparams, model: target_model.Model, logits, hidden, prompt_x,
     t = target_model.as_target(model)
     cfg = t.cfg
     b = logits.shape[0]
-    root = jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id if first is None else first
+    root = target_model.greedy_ids(cfg, logits) if first is None else first
     feat, dcache = drafter.prompt_pass(dparams, cfg, prompt_x, hidden, vla.prompt_key_mask(cfg, obs.instruction),
                                        t.embed_tokens(tparams, root))
     out = jnp.zeros((b, ACTION_DIM + slack), jnp.int32).at[:, 0].set(root)
