@@ -180,7 +180,7 @@ def define_cost_flags() -> None:
     flags.DEFINE_string("cost_cache", str(cost_model.DEFAULT_CACHE),
                         "budget=auto: directory of measured cost tables (per device, model and batch size); '' = none.")
     flags.DEFINE_bool("calibrate_costs", False, "budget=auto: where no decode-cost table is cached for this device, "
-                      "model, settings and batch size, measure it now (1-3 min, then cached) instead of failing.")
+                      "model, settings and batch size, measure it now (about a minute for the shipped target, several for a 7B expansion; then cached) instead of failing.")
 
 
 def cost_kwargs() -> dict:

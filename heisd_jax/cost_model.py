@@ -47,7 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import budget, cache_dirs, drafter, hybrid, results_io, retrieval, spec_decode, target_model, vla
-from heisd_jax.timing import in_graph_ms
+from heisd_jax.timing import in_graph, in_graph_ms
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 FORMAT = 5  # 5: keyed by the model's architecture (4: weight fingerprints); older tables are re-measured
@@ -86,7 +86,8 @@ class CostTable:
     round_ms: list[float]
     decode_ms: list[float]  # the option's whole decode on the calibration inputs (median over draws)
     decode_rounds: list[float]  # ... and the draft rounds it needed there (median)
-    pieces: dict  # prefill_ms {appended tokens: ms}, cached_ms {T: ms}, drafter_ms {T: ms}, drafter_prompt_ms
+    pieces: dict  # prefill_ms {appended tokens: ms}, cached_ms {T: ms}, query_ms, round_alone_ms, zero_round_ms
+    # (with calibrate(detail=True) also the drafter's: drafter_ms {T: ms}, drafter_prompt_ms)
     seconds: float  # how long the calibration took
 
     def costs(self) -> budget.Costs:
@@ -100,16 +101,18 @@ class CostTable:
 
     def report(self) -> str:
         p = self.pieces
+        ms_list = lambda d, plus="": ", ".join(f"{plus}{k}: {v:.3f}" for k, v in d.items()) or "-"  # noqa: E731
         lines = [f"cost table: {self.key['device']}, batch {self.key['batch']}, {self.key['dtype']} "
                  f"(calibrated in {self.seconds:.1f}s)",
-                 "  prefill + appended tokens: " + ", ".join(f"+{k}: {v:.3f}" for k, v in p["prefill_ms"].items()) + " ms",
-                 "  cached target pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["cached_ms"].items()) + " ms",
-                 "  drafter pass over T: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["drafter_ms"].items())
-                 + f" ms; drafter prompt pass {p['drafter_prompt_ms']:.3f} ms; datastore query {p['query_ms']:.3f} ms",
-                 "  draft round measured alone: " + ", ".join(f"{k}: {v:.3f}" for k, v in p["round_alone_ms"].items())
-                 + " ms; decode with whole acceptance (0 rounds): "
-                 + (", ".join(f"{k}: {v:.3f}" for k, v in p["zero_round_ms"].items()) or "-") + " ms",
-                 f"  ceiling AR / prefill: {self.ceiling:.2f}x"]
+                 f"  prefill + appended tokens: {ms_list(p['prefill_ms'], '+')} ms",
+                 f"  cached target pass over T: {ms_list(p['cached_ms'])} ms"]
+        if "drafter_ms" in p:  # measured with calibrate(detail=True)
+            lines.append(f"  drafter pass over T: {ms_list(p['drafter_ms'])} ms; drafter prompt pass "
+                         f"{p['drafter_prompt_ms']:.3f} ms")
+        lines += [f"  datastore query {p['query_ms']:.3f} ms; draft round measured alone: "
+                  f"{ms_list(p['round_alone_ms'])} ms; decode with whole acceptance (0 rounds): "
+                  f"{ms_list(p['zero_round_ms'])} ms",
+                  f"  ceiling AR / prefill: {self.ceiling:.2f}x"]
         for i, name in enumerate(self.options):
             lines.append(f"  {name:<22} fixed {self.fixed_ms[i]:7.3f} ms + rounds x {self.round_ms[i]:6.3f} ms "
                          f"(whole decode {self.decode_ms[i]:.3f} ms at {self.decode_rounds[i]:.0f} rounds)")
@@ -117,10 +120,14 @@ class CostTable:
 
 
 def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batch: int, reps: int = 7,
-              n_draws: int = 3) -> CostTable:
-    """Measures the cost table (seconds to minutes: one compile per piece); each option's
-    whole decode on `n_draws` random input draws. model: a `vla.VLAConfig` or any
-    `target_model.TargetModel`."""
+              n_draws: int = 3, detail: bool = False) -> CostTable:
+    """Measures the cost table: each option's whole decode on `n_draws` random input draws,
+    and the pieces the table is read from (the prefill, a single-token pass, the datastore
+    query, each tree's round measured alone). One compile per measured program, which is
+    what the calibration's time is: seconds for the shipped target, minutes for a 7B
+    expansion. `detail` also measures the pass costs the table only reports (the prefill with
+    appended candidates, cached passes over 2-33 tokens, the drafter's passes): twice the
+    compiles. model: a `vla.VLAConfig` or any `target_model.TargetModel`."""
     target = target_model.as_target(model)
     cfg = target.cfg
     t_start = time.perf_counter()
@@ -130,32 +137,38 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
     valid = jnp.ones(cand.shape[:2], bool)
     ms = lambda fn, *args: in_graph_ms(fn, args, reps=reps)  # noqa: E731
 
-    pieces = {"prefill_ms": {"0": ms(lambda tp, obs: target.prefill(tp, obs)[0], tp, obs)}}
-    for m in sorted({1, n}):
-        block = hybrid.candidate_block(cand[:, :m])
-        pieces["prefill_ms"][str(m * (ACTION_DIM - 1))] = ms(
-            lambda tp, obs, block: target.prefill_with_block(tp, obs, *block)[3], tp, obs, block)
-    _, hidden, x, cache = jax.jit(target.prefill)(tp, obs)
-    largest = max(t[2] for t in hcfg.budget.trees) + 1
-    pieces["cached_ms"] = {}
-    for t in sorted({t for t in (1, 2, 4, 8, 16, 32) if t < largest} | {largest}):
+    prefill_ms, prefilled = in_graph(lambda tp, obs: target.prefill(tp, obs), (tp, obs), reps=reps)
+    logits, hidden, x, cache = prefilled
+    pieces = {"prefill_ms": {"0": prefill_ms}, "cached_ms": {}}
+
+    def cached_ms(t):
         toks = jnp.full((batch, t), cfg.first_action_id, jnp.int32)
         depth = jnp.broadcast_to(jnp.arange(t), (batch, t))
         intra = jnp.broadcast_to(jnp.tril(jnp.ones((t, t), bool)), (batch, t, t))
         pieces["cached_ms"][str(t)] = ms(lambda tp, c, a, b, i: target.cached_pass(tp, c, a, b, i)[0],
                                          tp, cache, toks, depth, intra)
-    key_ok = vla.prompt_key_mask(cfg, obs.instruction)
-    root_emb = target.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))
-    pieces["drafter_prompt_ms"] = ms(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e)[0],
-                                     dp, x, hidden, key_ok, root_emb)
-    _, dcache = jax.jit(lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e))(dp, x, hidden, key_ok, root_emb)
-    pieces["drafter_ms"] = {}
-    for t in sorted({k for k, _, _ in hcfg.budget.trees} | {ACTION_DIM}):
-        emb = jnp.zeros((batch, t, cfg.d_model), cfg.dtype)
-        pos = jnp.broadcast_to(cfg.prompt_len + jnp.arange(t), (batch, t))
-        mask = jnp.ones((batch, t, cfg.cache_slots), bool)
-        pieces["drafter_ms"][str(t)] = ms(
-            lambda dp, c, e, p, m: drafter.cached_pass(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos, mask)
+    cached_ms(1)  # the round of AR after the verified candidates, before its slope is measured
+    if detail:
+        for m in sorted({1, n}):
+            block = hybrid.candidate_block(cand[:, :m])
+            pieces["prefill_ms"][str(m * (ACTION_DIM - 1))] = ms(
+                lambda tp, obs, block: target.prefill_with_block(tp, obs, *block)[3], tp, obs, block)
+        largest = max(t[2] for t in hcfg.budget.trees) + 1
+        for t in sorted({t for t in (2, 4, 8, 16, 32) if t < largest} | {largest}):
+            cached_ms(t)
+        key_ok = vla.prompt_key_mask(cfg, obs.instruction)
+        root_emb = target.embed_tokens(tp, jnp.full((batch,), cfg.first_action_id, jnp.int32))
+        pieces["drafter_prompt_ms"], (_, dcache) = in_graph(
+            lambda dp, x, h, k, e: drafter.prompt_pass(dp, cfg, x, h, k, e), (dp, x, hidden, key_ok, root_emb),
+            reps=reps)
+        pieces["drafter_ms"] = {}
+        for t in sorted({k for k, _, _ in hcfg.budget.trees} | {ACTION_DIM}):
+            emb = jnp.zeros((batch, t, cfg.d_model), cfg.dtype)
+            pos = jnp.broadcast_to(cfg.prompt_len + jnp.arange(t), (batch, t))
+            mask = jnp.ones((batch, t, cfg.cache_slots), bool)
+            pieces["drafter_ms"][str(t)] = ms(
+                lambda dp, c, e, p, m: drafter.cached_pass(dp, cfg, c, e, e, p, c.length, m)[0], dp, dcache, emb, pos,
+                mask)
 
     query_ms = 0.0  # every option but plain AR queries the datastore first
     if "store" in params and hcfg.n_candidates:
@@ -164,25 +177,24 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
     pieces["query_ms"] = query_ms
     opts = budget.options(hcfg.budget, hcfg.mode)
     draws = [(obs, cand)] + [synthetic_inputs(cfg, batch, n, seed) for seed in range(1, n_draws)]
-    whole_ms = lambda fn, *args: in_graph_ms(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
+    whole = lambda fn, *args: in_graph(fn, args, n=(1, 4), reps=reps)  # noqa: E731  (whole decodes: fewer calls)
     skip = jnp.zeros((batch,), bool)
     def ar(tp, obs):
         return target_model.ar_decode(tp, target, obs)[0]
+    ar_ms, ar_tokens = whole(ar, tp, obs)
     # Candidates equal to the target's own greedy action: accepted whole, zero draft rounds.
-    exact = jnp.broadcast_to(jax.jit(ar)(tp, obs)[:, None], cand.shape)
-    ar_ms = whole_ms(ar, tp, obs)
+    exact = jnp.broadcast_to(ar_tokens[:, None], cand.shape)
     rows = {"ar": (ar_ms, 0.0, ar_ms, 0.0)}  # option -> (fixed, round, whole decode, its rounds)
     pieces["round_alone_ms"], pieces["zero_round_ms"] = {}, {}
 
     def decoder(hc):
         def dec(p, obs, cand, valid, use, skip):
             return hybrid.decode(p, target, hc, obs, cand, valid, use, skip)
-        rounds = jax.jit(lambda *a: jnp.max(dec(*a)[1]["rounds"]))
 
         def timed(use, inputs):
-            t = np.array([whole_ms(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs])
-            r = np.array([float(rounds(params, ob, ca, valid, use, skip)) for ob, ca in inputs])
-            return t, r
+            runs = [whole(dec, params, ob, ca, valid, use, skip) for ob, ca in inputs]
+            return (np.array([t for t, _ in runs]),
+                    np.array([float(jnp.max(out[1]["rounds"])) for _, out in runs]))
         return timed
 
     def row(fixed, round_ms, t, r):
@@ -207,8 +219,8 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
     for tree in dict.fromkeys(o.tree for o in opts if o.tree is not None):
         spec = budget.tree_spec(hcfg.spec, tree)
         timed = decoder(dataclasses.replace(hcfg, spec=spec, continuation="drafter"))
-        s0 = jax.jit(lambda tp, dp, obs, spec=spec: spec_decode.start(
-            tp, dp, target, *target.prefill(tp, obs), obs, slack=spec.depth + 1))(tp, dp, obs)
+        s0 = jax.jit(lambda tp, dp, pre, obs, spec=spec: spec_decode.start(
+            tp, dp, target, *pre, obs, slack=spec.depth + 1))(tp, dp, prefilled, obs)
         name = budget.Option(tree, False).name
         # The whole state out (not just the tokens), or XLA drops the cache commit.
         round_ms = pieces["round_alone_ms"][name] = ms(
@@ -220,9 +232,9 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
         if any(not o.retrieval for o in mine):
             t, r = timed(jnp.zeros((batch,), bool), draws)
             rows[name] = row(float(np.median(t - r * round_ms)), round_ms, float(np.median(t)), float(np.median(r)))
-    fixed, rnd, whole, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
+    fixed, rnd, decode_ms, nrounds = (list(col) for col in zip(*(rows[o.name] for o in opts)))
     return CostTable(key=table_key(cfg, hcfg, batch), options=[o.name for o in opts], fixed_ms=fixed,
-                     round_ms=rnd, decode_ms=whole, decode_rounds=nrounds, pieces=pieces,
+                     round_ms=rnd, decode_ms=decode_ms, decode_rounds=nrounds, pieces=pieces,
                      seconds=time.perf_counter() - t_start)
 
 
@@ -259,7 +271,7 @@ def load_cached(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
 def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
                       directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print,
                       measure: bool = True) -> CostTable:
-    """The cached table for this key; else, with `measure`, a fresh calibration (1-3 min,
+    """The cached table for this key; else, with `measure`, a fresh calibration (`calibrate`,
     then cached in `directory`; None: never cached), or without it `MissingCostTable`."""
     table = load_cached(cfg, hcfg, batch, directory, log)
     if table is not None:
@@ -268,9 +280,11 @@ def load_or_calibrate(params, cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, bat
         where = f"in {directory}" if directory is not None else "(no cost cache directory given)"
         raise MissingCostTable(
             f"budget=auto needs a decode-cost table for this device, model, settings and batch size {batch}, and none "
-            f"is cached {where}: rerun with --calibrate_costs to measure it now (1-3 minutes on an idle device; cached "
+            f"is cached {where}: rerun with --calibrate_costs to measure it now (on an idle device: about a minute "
+            f"for the shipped target, several for a 7B expansion, whose every compile takes tens of seconds; cached "
             f"for later runs), or use budget=fixed")
-    log(f"measuring the decode-cost table at batch {batch} (1-3 minutes)")
+    log(f"measuring the decode-cost table at batch {batch} (one compile per measured program: about a minute "
+        f"for the shipped target, several for a 7B expansion)")
     table = calibrate(params, cfg, hcfg, batch)
     if directory is not None:
         path = cache_file(directory, table.key)

@@ -57,30 +57,44 @@ def in_graph_ms(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: i
     work out of the loop nor drop it. The median over pairs, since at batch 1 a piece costs
     0.03-0.4 ms and one pair of runs is that noisy; a piece above 5 ms (a 7B model's pass)
     stops after 3 pairs. Calls with the same `fn` object share one compiled loop."""
-    f = _looped(fn)
+    return _in_graph(fn, args, n, reps, keep_output=False)[0]
+
+
+def in_graph(fn: Callable, args: tuple, n: tuple[int, int] = (2, 12), reps: int = 7):
+    """(`in_graph_ms`, fn(*args)'s output): the output comes out of the timed loop itself, so
+    a caller that needs both (a decode's tokens, its rounds) pays one compile, not two; at a
+    7B model's size a compile costs tens of seconds."""
+    return _in_graph(fn, args, n, reps, keep_output=True)
+
+
+def _in_graph(fn, args, n, reps, keep_output):
+    if not 1 <= n[0] < n[1]:
+        raise ValueError(f"need 1 <= n[0] < n[1] runs, got {n}")
+    f = _looped(fn, keep_output)
 
     def seconds(count):
         return timed(lambda: f(count, args))[1]
-    seconds(n[1])  # compile + warm-up
+    (_, out), _ = timed(lambda: f(n[1], args))  # compile + warm-up
     diffs = []
     for _ in range(reps):
         diffs.append(seconds(n[1]) - seconds(n[0]))
         if len(diffs) == SLOW_REPS and np.median(diffs) / (n[1] - n[0]) > SLOW_PIECE_S:
             break  # a slow piece (a large model's pass) is not noisy at this scale: spare the device
-    return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0])
-
+    return 1e3 * max(float(np.median(diffs)), 0.0) / (n[1] - n[0]), out
 
 
 @functools.lru_cache(maxsize=64)
-def _looped(fn: Callable):
+def _looped(fn: Callable, keep_output: bool):
     def loop(count, args):
         def body(_, carry):
-            args, acc = carry
+            args, acc, last = carry
             out = fn(*args)
             args, out = jax.lax.optimization_barrier((args, out))
             leaf = jax.tree.leaves(out)[0]
-            return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32)
-        return jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32)))[1]
+            return args, acc + jnp.ravel(leaf)[0].astype(jnp.float32), out if keep_output else last
+        last = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(fn, *args)) if keep_output else ()
+        _, acc, last = jax.lax.fori_loop(0, count, body, (args, jnp.zeros((), jnp.float32), last))
+        return acc, last
     return jax.jit(loop)
 
 

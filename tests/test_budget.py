@@ -213,6 +213,16 @@ def test_step_with_auto_budget_keeps_its_state(tiny_hybrid):
                     jnp.arange(B))
 
 
+def test_calibration_detail_adds_the_passes_the_table_only_reports(tiny_hybrid):
+    params, _, _ = tiny_hybrid
+    one = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=TREES[:1]))
+    table = cost_model.calibrate(params, CFG, one, 2, reps=1, n_draws=1, detail=True)
+    p = table.pieces
+    assert set(p["prefill_ms"]) == {"0", "6", "18"} and set(p["cached_ms"]) == {"1", "2", "3"}
+    assert set(p["drafter_ms"]) == {"2", "7"} and p["drafter_prompt_ms"] >= 0
+    assert "drafter pass over T" in table.report()
+
+
 def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     params, _, _ = tiny_hybrid
     logs = []
@@ -225,7 +235,9 @@ def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     # AR after the verified candidates has its own (a single-token pass).
     assert table.round_ms[2] == table.round_ms[3] > 0 and table.round_ms[1] > 0
     assert set(table.pieces["zero_round_ms"]) == {"ar+retrieval", "2x1x2+retrieval"}
-    assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0", "6", "18"}
+    # Only the pieces the table is read from, by default; detail adds the ones it only reports.
+    assert table.pieces["prefill_ms"]["0"] > 0 and set(table.pieces["prefill_ms"]) == {"0"}
+    assert set(table.pieces["cached_ms"]) == {"1"} and "drafter_ms" not in table.pieces
     assert table.key["batch"] == 2 and table.ceiling > 0 and "ceiling AR / prefill" in table.report()
     files = list(tmp_path.glob("costs_*.json"))
     assert len(files) == 1

@@ -40,3 +40,16 @@ def test_write_hlo_keeps_the_optimised_program_that_names_the_kernels(tmp_path):
         text = fh.read()
     assert text.startswith("HloModule") and "tanh" in text
     assert text == f.lower(x).compile().as_text()  # the compiled program, not the unoptimised one
+
+
+def test_in_graph_returns_the_pieces_output_from_its_timed_loop():
+    def piece(w, x):
+        return {"y": jnp.tanh(x @ w), "n": jnp.sum(x > 0)}
+    w, x = jnp.eye(16) * 0.5, jnp.arange(32.0).reshape(2, 16) - 8
+    ms, out = timing.in_graph(piece, (w, x), n=(1, 3), reps=2)
+    assert ms >= 0
+    ref = jax.jit(piece)(w, x)
+    np.testing.assert_allclose(np.asarray(out["y"]), np.asarray(ref["y"]), rtol=1e-6)
+    assert int(out["n"]) == int(ref["n"])
+    with pytest.raises(ValueError, match="1 <= n\\[0\\] < n\\[1\\]"):
+        timing.in_graph_ms(piece, (w, x), n=(0, 3))
