@@ -2,6 +2,7 @@
 # Runs experiments on a leased GPU machine (the device tool), with the carried mujoco wheels.
 #
 #   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
+#   bash experiments/gpu_job.sh per-gpu -- CMD [ARGS...] [-- CMD ...] # command i on GPU i, all at once
 #   bash experiments/gpu_job.sh start -- CMD [ARGS...] [-- CMD ...]  # the same in the background
 #   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
 #                                         (SECONDS is capped to end 40 s before the call's 600 s limit)
@@ -10,6 +11,12 @@
 # GPU_JOB_STEP_TIMEOUT=SECONDS (in start's environment, or the foreground's) ends any one
 # command that runs longer (logged as "== timed out"), and the job goes on to the next: a
 # command that hangs (say, a kernel's compile) then costs at most that much device time.
+#
+# per-gpu runs command i alone on GPU i (CUDA_VISIBLE_DEVICES=i), all at once, each with its
+# own output folder $OUT/gpuI (its $OUT, its job.log) and compilation cache, and waits for all:
+# the device tool counts a machine's time, not its GPUs', so a 2- or 4-GPU host runs that many
+# independent measurements for the price of one. Compare speeds within one command only (each
+# times its own baseline): the GPUs share the host's CPU and memory bandwidth.
 #
 # Each command's output is teed to job.log in the folder that comes back, which a command
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
@@ -24,7 +31,7 @@ SELF=$(realpath "$0")
 cd "$(dirname "$SELF")/.."  # repo root
 WORK=/tmp/gpu_job SITE=/tmp/site
 export PYTHONPATH=$SITE PYTHONUNBUFFERED=1 JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$WORK/jax_cache}
-usage() { echo "usage: $0 [start] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
+usage() { echo "usage: $0 [start|per-gpu] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
 
 install() {
   [ -n "${GPU_JOB_SITE_READY:-}" ] && return
@@ -73,6 +80,26 @@ case "${1:-}" in
   --)
     [ $# -ge 2 ] || usage
     install; run "${@:2}"
+    ;;
+  per-gpu)
+    [ "${2:-}" = "--" ] && [ $# -ge 3 ] || usage
+    : "${OUT:?OUT must name the folder that comes back}"
+    cmds=() cur="" n=0
+    for arg in "${@:3}" --; do  # each command, shell-quoted, for its own `run`
+      if [ "$arg" = "--" ]; then [ -n "$cur" ] && cmds+=("$cur"); cur=""; else cur+=" $(printf '%q' "$arg")"; fi
+    done
+    gpus=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')
+    [ "${#cmds[@]}" -le "$gpus" ] || { echo "per-gpu: ${#cmds[@]} commands for $gpus GPUs" >&2; exit 2; }
+    install
+    for i in "${!cmds[@]}"; do
+      ( eval "set -- ${cmds[$i]}"
+        export CUDA_VISIBLE_DEVICES=$i OUT=$OUT/gpu$i GPU_JOB_SITE_READY=1 \
+               JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR}_gpu$i
+        run "$@" > /dev/null ) &
+    done
+    rc=0; for j in $(jobs -p); do wait "$j" || rc=$?; done
+    for i in "${!cmds[@]}"; do echo "==== GPU $i"; grep -v '^W[0-9]\{4\}' "$OUT/gpu$i/job.log" | tail -c 4000; done
+    exit $rc
     ;;
   start)
     [ "${2:-}" = "--" ] && [ $# -ge 3 ] || usage

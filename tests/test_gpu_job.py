@@ -1,0 +1,42 @@
+"""experiments/gpu_job.sh's per-gpu mode, with a stand-in `nvidia-smi`: command i runs on GPU i
+(its own CUDA_VISIBLE_DEVICES, $OUT folder and compilation cache), all of them before the
+script returns, and more commands than GPUs are refused before any runs."""
+
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "experiments" / "gpu_job.sh"
+
+
+def _run(tmp_path, *args):
+    fake = tmp_path / "bin"
+    fake.mkdir(exist_ok=True)
+    smi = fake / "nvidia-smi"
+    smi.write_text('#!/bin/sh\necho "GPU 0: H200 (UUID: a)"\necho "GPU 1: H200 (UUID: b)"\n')
+    smi.chmod(0o755)
+    env = dict(os.environ, PATH=f"{fake}:{os.environ['PATH']}", OUT=str(tmp_path / "out"), GPU_JOB_SITE_READY="1",
+               JAX_COMPILATION_CACHE_DIR=str(tmp_path / "cache"))
+    return subprocess.run(["bash", str(SCRIPT), "per-gpu", *args], env=env, capture_output=True, text=True)
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+def test_per_gpu_runs_command_i_on_gpu_i(tmp_path):
+    write = 'echo "$CUDA_VISIBLE_DEVICES $JAX_COMPILATION_CACHE_DIR" > "$0"'
+    r = _run(tmp_path, "--", "sh", "-c", write, "$OUT/where.txt", "--", "sh", "-c", write + "; exit 3", "$OUT/where.txt")
+    assert r.returncode == 3, r.stderr  # a failing command's status comes back
+    for i in (0, 1):
+        folder = tmp_path / "out" / f"gpu{i}"
+        assert (folder / "where.txt").read_text().split() == [str(i), f"{tmp_path / 'cache'}_gpu{i}"]
+        assert f"== exit {3 * i}" in (folder / "job.log").read_text()
+        assert f"==== GPU {i}" in r.stdout
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+def test_per_gpu_refuses_more_commands_than_gpus(tmp_path):
+    r = _run(tmp_path, "--", "touch", "$OUT/a", "--", "touch", "$OUT/b", "--", "touch", "$OUT/c")
+    assert r.returncode == 2 and "3 commands for 2 GPUs" in r.stderr
+    assert not (tmp_path / "out").exists()
