@@ -18,10 +18,12 @@ excluded); at every step each part is timed on that step's observations with
 and prints per-call medians, an estimated per-action breakdown of `act` (each part times
 how often the method ran it per action, from its own statistics; the remainder is loop
 and masking overhead) and act's speedup over AR at this batch size. --trace_dir also traces
-3 calls each of `act` and `env_step` at the last step's states under `jax.profiler`
+3 calls each of `act`, `ar` and `env_step` at the last step's states under `jax.profiler`
 (TensorBoard / Perfetto, one folder each) and prints and writes (`kernels`) their per-kernel
 time per call on each device timeline (`heisd_jax.timing.kernel_summary`): where a part's
-milliseconds go, kernel by kernel. --hlo_dir writes both calls' optimised HLO (gzipped
+milliseconds go, kernel by kernel, and how much of a call the device spends waiting for the
+host (the call's median wall time less its kernels: graph launches, `while`-loop conditions
+copied to the host, argument handling). --hlo_dir writes the three calls' optimised HLO (gzipped
 text), where those kernels' names (XLA's fusions) can be looked up.
 """
 
@@ -51,7 +53,7 @@ flags.DEFINE_integer("batch", 16, "Envs decoded together.")
 flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Trace 3 calls of act and of env_step here and summarise them per kernel.")
 flags.DEFINE_integer("top", 12, "Kernels listed per device timeline with --trace_dir.")
-flags.DEFINE_string("hlo_dir", "", "Write the optimised HLO of act and of env_step here (the kernels' names).")
+flags.DEFINE_string("hlo_dir", "", "Write the optimised HLO of act, ar and env_step here (the kernels' names).")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -154,7 +156,8 @@ def main(argv):
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
     kernels = {}
-    calls = {"act": (act, (params, states, pstate, act_keys)), "env_step": (step, (states, actions))}
+    calls = {"act": (act, (params, states, pstate, act_keys)),
+             "ar": (fns["ar"], (params, vla_policy.observation(states))), "env_step": (step, (states, actions))}
     for name, (fn, args) in calls.items():  # after the timed loop, so tracing slows no timed call
         if FLAGS.trace_dir:
             path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
@@ -192,7 +195,9 @@ def main(argv):
           f"{loop['ar']:.1f} with AR's decode in its place")
     for name, lines in kernels.items():
         for line, summary in lines.items():
-            print(f"  {name} kernels, {line}: {summary['total_ms']:.3f} ms per call")
+            idle = med[name] - summary["total_ms"]
+            print(f"  {name} kernels, {line}: {summary['total_ms']:.3f} ms per call of {med[name]:.3f} "
+                  f"(the device idle {idle:.3f} ms: launches, host syncs, argument handling)")
             for kname, ms in summary["top"]:
                 print(f"    {ms:9.3f}  {kname[:150]}")
     if FLAGS.trace_dir:

@@ -34,7 +34,7 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
     m = r["median_ms"]  # a host loop's rate: one decode and one env step per control step
     assert r["control_steps_per_s"]["act"] == pytest.approx(1e3 / (m["act"] + m["env_step"]))
     assert 0 < r["per_action"]["target_passes"] <= 8
-    for part in ("act", "env_step"):  # each traced on its own and summarised per kernel, per call
+    for part in ("act", "ar", "env_step"):  # each traced on its own and summarised per kernel, per call
         assert any((tmp_path / "trace" / part).rglob("*.xplane.pb")), part
         lines = r["kernels"][part]
         assert lines and all(s["total_ms"] > 0 and s["top"] for s in lines.values()), part
