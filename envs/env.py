@@ -39,7 +39,7 @@ class EnvConfig:
 class Observation:
     """What one env shows a policy at a control step (vmapped: leading batch axes). The
     fields and formats are the decode core's `heisd_jax.observation.Observation`; the
-    evaluation layer converts (`heisd_jax.vla_policy.observation`), so neither imports the other."""
+    evaluation layer converts (`heisd_jax.harness.vla_policy.observation`), so neither imports the other."""
 
     image: jnp.ndarray  # [H, W * n_views, 3] uint8: views tiled left to right (envs.camera)
     instruction: jnp.ndarray  # [MAX_INSTRUCTION_TOKENS] int32 ids of envs.language

@@ -30,7 +30,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import demos, language
 from heisd_jax.timing import median_seconds
-from heisd_jax import checkpoint, data, results_io, spec_decode, target_model, vla
+from heisd_jax import checkpoint, results_io, spec_decode, target_model, vla
+from heisd_jax.harness import data
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -28,7 +28,8 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import physics, robot, scene
 from envs.env import EnvConfig, TabletopEnv
 from envs.ik import ControlConfig
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS

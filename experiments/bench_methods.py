@@ -43,7 +43,8 @@ import numpy as np
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, methods, replay, results_io, retrieval, scale, vla, vla_policy
+from heisd_jax import checkpoint, results_io, retrieval, scale, vla
+from heisd_jax.harness import methods, replay, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS

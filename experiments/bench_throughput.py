@@ -14,7 +14,7 @@ warm-up episode, each batch size's rollout ahead of time) and times nothing: wit
 JAX_COMPILATION_CACHE_DIR set, several such processes can compile at once on a many-core
 host, and the timed run then loads its programs from that cache.
 
-Batched: `heisd_jax.evaluate.BatchRollout`, the evaluator's jitted rollout (one
+Batched: `heisd_jax.harness.evaluator.BatchRollout`, the evaluator's jitted rollout (one
 `lax.while_loop` over control steps, envs vmapped and sharded over the devices), running
 at least --episodes episodes per batch size in whole batches. Sequential: what LIBERO-style
 evaluation does: one env, and per control step one jitted policy call and one jitted env
@@ -39,7 +39,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, sharding
+from heisd_jax import results_io, sharding
+from heisd_jax.harness import evaluator as ev, methods
 from experiments import cli
 
 FLAGS = flags.FLAGS

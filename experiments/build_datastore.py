@@ -4,7 +4,7 @@
 
 Keys: the last --history actions and the proprio vector; values: the next action's tokens
 under the target's tokenizer (--values: the demo's, the target's own, or, from the target's
-own rollouts, what it executed) (built by heisd_jax/offline/datastore.py, loaded by
+own rollouts, what it executed) (built by heisd_jax/harness/offline/datastore.py, loaded by
 heisd_jax/retrieval.py). Every 1/--holdout-th episode is left out (listed in meta.json) for
 experiments.calibrate_boundary; the kinematic metric's per-feature scales (90th percentile
 over the datastore's demo steps) are saved with it. The datastore records the target's
@@ -22,7 +22,7 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos, language
 from heisd_jax import checkpoint, kinematics, retrieval
-from heisd_jax.offline import datastore
+from heisd_jax.harness.offline import datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -7,7 +7,7 @@ For every held-out demo step (the datastore's meta.json lists them), the target 
 step's observation twice with the same settings as `--method=heisd`: once verifying the
 retrieved candidates (then drafter rounds for what they leave), once with drafter SD alone.
 The measurement and the rule that turns it into tau_on, tau_off and skip_eps are
-`heisd_jax.offline.boundary` (its module doc states the rule); this script loads the
+`heisd_jax.harness.offline.boundary` (its module doc states the rule); this script loads the
 inputs, prints the per-bin table and writes <datastore>/boundary.json (atomically; an
 existing file is replaced only with --overwrite) and a plot.
 """
@@ -23,8 +23,9 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 import numpy as np
 
 from envs import demos, tasks as tasks_lib
-from heisd_jax import data, methods, results_io
-from heisd_jax.offline import boundary, datastore
+from heisd_jax import results_io
+from heisd_jax.harness import data, methods
+from heisd_jax.harness.offline import boundary, datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS

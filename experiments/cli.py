@@ -190,9 +190,9 @@ def cost_kwargs() -> dict:
 
 def define_tail_flag() -> None:
     """--tail_envs (`EvalConfig.tail_envs`), for the entry points that run evaluations."""
-    from heisd_jax import evaluate  # noqa: PLC0415
+    from heisd_jax.harness import evaluator  # noqa: PLC0415
 
-    flags.DEFINE_integer("tail_envs", evaluate.EvalConfig.tail_envs,
+    flags.DEFINE_integer("tail_envs", evaluator.EvalConfig.tail_envs,
                          "With refilled slots: once no episode is pending and at most this many envs still run, they "
                          "go on in a batch of this size, so the queue's last, longest episodes do not pay a full "
                          "batch's step (a second copy of the step in the program: a longer compile; faster on a warm "
@@ -237,7 +237,7 @@ def executable_store(method: str, settings: dict):
     """The store of --executable_store for `method`'s programs at `settings` (its flags), named
     also by digests of the files it loads (--checkpoint, --drafter, --datastore: a retrained
     checkpoint at the same path is another program); None when the flag is empty."""
-    from heisd_jax import executable_store as store_lib, methods  # noqa: PLC0415
+    from heisd_jax.harness import executable_store as store_lib, methods  # noqa: PLC0415
 
     if not flags.FLAGS.executable_store:
         return None
@@ -256,7 +256,7 @@ PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped 
 def define_paths(*names: str) -> None:
     """--checkpoint / --drafter / --datastore, defaulting to the shipped artifacts and checked
     when flags parse (an existing directory)."""
-    from heisd_jax import vla_policy  # noqa: PLC0415  (after the entry point's `import envs`)
+    from heisd_jax.harness import vla_policy  # noqa: PLC0415  (after the entry point's `import envs`)
 
     defaults = {"checkpoint": vla_policy.DEFAULT_CHECKPOINT, "drafter": vla_policy.DEFAULT_DRAFTER,
                 "datastore": vla_policy.DEFAULT_DATASTORE}

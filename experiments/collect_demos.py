@@ -66,7 +66,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     dagger = bool(FLAGS.policy)
     if dagger:
-        from heisd_jax import methods  # noqa: PLC0415
+        from heisd_jax.harness import methods  # noqa: PLC0415
 
         try:
             env_cfg = methods.env_config("ar", FLAGS.policy)

@@ -23,7 +23,8 @@ from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 import jax
 
-from heisd_jax import evaluate as ev, methods, results_io, sharding
+from heisd_jax import results_io, sharding
+from heisd_jax.harness import evaluator as ev, methods
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
@@ -32,7 +33,7 @@ flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Decoding method 
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task (the first N of the fixed 50).")
-flags.DEFINE_integer("num_envs", 0, "Episodes run in parallel; 0: heisd_jax.evaluate.default_num_envs() (512 per GPU, "
+flags.DEFINE_integer("num_envs", 0, "Episodes run in parallel; 0: heisd_jax.harness.evaluator.default_num_envs() (512 per GPU, "
                      "64 on a CPU).", lower_bound=0)
 flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pending episode: every pending episode in "
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "

@@ -1,6 +1,6 @@
 """The decoding methods' settings as absl flags, generated from their configs.
 
-Every setting of a VLA method (`heisd_jax.methods.settings`: the settable fields of its
+Every setting of a VLA method (`heisd_jax.harness.methods.settings`: the settable fields of its
 default config) becomes one flag of the same name (`--top_k`, `--budget`, ...), shared by the
 methods that have it; its type, valid choices and help come from the setting, and its default
 is None: "the chosen method's own default", which the help line lists per method. Sweep keys
@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from absl import app, flags
 
-from heisd_jax import methods
+from heisd_jax.harness import methods
 
 _DEFINED: dict[int, list[str]] = {}  # per FlagValues object: the flags define() made
 

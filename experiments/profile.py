@@ -41,7 +41,8 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import hybrid, methods, results_io, retrieval, spec_decode as sd, target_model, timing, vla, vla_policy
+from heisd_jax import hybrid, results_io, retrieval, spec_decode as sd, target_model, timing, vla
+from heisd_jax.harness import methods, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -25,7 +25,8 @@ import numpy as np
 
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, scale, target_model, vla, vla_policy
+from heisd_jax import checkpoint, results_io, scale, target_model, vla
+from heisd_jax.harness import methods, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -27,7 +27,8 @@ import tempfile
 from absl import app, flags
 
 from envs import _xla
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS

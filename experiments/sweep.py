@@ -6,7 +6,7 @@
   python -m experiments.report results/sweep.jsonl
 
 A method is NAME or NAME:key=value,key=value (e.g. drafter:top_k=4,depth=2,total_tokens=8,
-heisd:skip=false); `heisd_jax.methods.check_settings` lists each method's valid keys.
+heisd:skip=false); `heisd_jax.harness.methods.check_settings` lists each method's valid keys.
 Every cell runs the batched evaluator on the suite's tasks and is appended to --out (with
 the method's full settings, the git commit, the device and library versions) as soon as it
 finishes: rerunning the same command skips finished cells, and a partial last line left by
@@ -34,7 +34,8 @@ import jax
 import mujoco
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import evaluate as ev, methods, results_io, sharding
+from heisd_jax import results_io, sharding
+from heisd_jax.harness import evaluator as ev, methods
 from experiments import cli
 
 FLAGS = flags.FLAGS
@@ -44,7 +45,7 @@ flags.DEFINE_string("methods", "ar", "Comma-separated methods, each NAME or NAME
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
 flags.DEFINE_list("tasks", [], "Only these task names.")
 flags.DEFINE_integer("episodes", 50, "Evaluation initial states per task.")
-flags.DEFINE_list("num_envs", ["0"], "Batch sizes (parallel envs); 0: heisd_jax.evaluate.default_num_envs() (512 per "
+flags.DEFINE_list("num_envs", ["0"], "Batch sizes (parallel envs); 0: heisd_jax.harness.evaluator.default_num_envs() (512 per "
                   "GPU, 64 on a CPU).")
 flags.DEFINE_list("seeds", ["0"], "Policy seeds.")
 cli.define_tail_flag()

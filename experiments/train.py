@@ -10,7 +10,7 @@ The model's image size and number of camera views are read from the data. --init
 from a policy checkpoint's parameters and tokenizer (fresh optimizer and schedule).
 
 --devices=N trains data parallel over N local devices (0: all): the state and the step
-table are replicated on each, every minibatch is split over them (`heisd_jax.train`).
+table are replicated on each, every minibatch is split over them (`heisd_jax.harness.training`).
 
 Training state is checkpointed with orbax under --out/state every --ckpt_every steps; a
 rerun with the same --out resumes from the latest one. Loss and per-dimension token
@@ -30,7 +30,8 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos, language
-from heisd_jax import checkpoint, data, sharding, train, vla, vla_policy
+from heisd_jax import checkpoint, sharding, vla
+from heisd_jax.harness import data, training, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
 
@@ -127,7 +128,7 @@ def _first(tree):
     return jax.device_put(tree, jax.local_devices()[0])
 
 
-def train_vla(out: Path, cfg: train.TrainConfig):
+def train_vla(out: Path, cfg: training.TrainConfig):
     host, val_host, image_size, n_views = _tables()
     init = None
     if FLAGS.init:
@@ -144,7 +145,7 @@ def train_vla(out: Path, cfg: train.TrainConfig):
                                   d_model=FLAGS.d_model, n_layers=FLAGS.n_layers,
                                   mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
     mngr = checkpoint.manager(out / "state")
-    state = train.init_state(model_cfg, cfg)
+    state = training.init_state(model_cfg, cfg)
     if init is not None:
         state = state.replace(params=init[0])
         tok = init[2]
@@ -161,8 +162,8 @@ def train_vla(out: Path, cfg: train.TrainConfig):
     mesh = _mesh()
     table, val_table, state = _place(mesh, host), jax.device_put(val_host), _place(mesh, state)
     run_cfg = dataclasses.replace(model_cfg, dtype=FLAGS.compute_dtype)
-    step = train.make_train_step(run_cfg, cfg, tok, mesh)
-    eval_fn = train.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
+    step = training.make_train_step(run_cfg, cfg, tok, mesh)
+    eval_fn = training.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
 
     def record(state, m, s):
@@ -182,18 +183,18 @@ def train_vla(out: Path, cfg: train.TrainConfig):
         print(f"policy checkpoint: {FLAGS.export}")
 
 
-def train_drafter(out: Path, cfg: train.TrainConfig):
+def train_drafter(out: Path, cfg: training.TrainConfig):
     tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target, text_vocab=language.VOCAB)
     host, val_host, _, _ = _tables()
     if host.image.shape[1:] != model_cfg.image_shape:
         raise app.UsageError(f"the target takes images {model_cfg.image_shape}, the demos hold {host.image.shape[1:]}")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
     t0 = time.perf_counter()
-    tokens, val_tokens = (train.greedy_tokens(tparams, model_cfg, t) for t in (table, val_table))
+    tokens, val_tokens = (training.greedy_tokens(tparams, model_cfg, t) for t in (table, val_table))
     print(f"target greedy tokens of {table.size + val_table.size} steps in {time.perf_counter() - t0:.1f}s")
     fp = checkpoint.fingerprint(tparams)
     mngr = checkpoint.manager(out / "state")
-    state = train.init_drafter_state(model_cfg, cfg)
+    state = training.init_drafter_state(model_cfg, cfg)
     meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
             "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos)}
     if mngr.latest_step() is not None:
@@ -203,8 +204,8 @@ def train_drafter(out: Path, cfg: train.TrainConfig):
         print(f"resumed from step {int(state.step)}")
     print(f"drafter {sum(x.size for x in jax.tree.leaves(state.params)) / 1e6:.2f}M parameters, target {fp}")
     mesh = _mesh()
-    step = train.make_drafter_step(model_cfg, cfg, mesh)
-    eval_fn = train.make_drafter_eval(model_cfg, min(1024, val_table.size))
+    step = training.make_drafter_step(model_cfg, cfg, mesh)
+    eval_fn = training.make_drafter_eval(model_cfg, min(1024, val_table.size))
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
     state, table_m, tparams_m, tokens_m = (_place(mesh, x) for x in (state, table, tparams, tokens))
 
@@ -237,7 +238,7 @@ def main(argv):
         if FLAGS.batch_size % n:
             raise ValueError(f"--batch_size={FLAGS.batch_size} cannot be split evenly over {n} devices; use a "
                              f"multiple of {n}")
-        cfg = train.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
+        cfg = training.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
                                 image_shift=FLAGS.image_shift, seed=FLAGS.seed)
     except (ValueError, FileNotFoundError) as e:

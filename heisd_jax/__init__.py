@@ -5,14 +5,16 @@ The decode API (docs/decode_api.md), importable from here without the simulator:
     load_drafter, ActionTokenizer, expand_target, expand_drafter (a 7B VLA's costs: docs/scale.md),
     TargetModel, VLATarget (the interface a decoder calls a target through)
 
-Two layers, arrows one way (tests/test_layers.py pins them):
-- the decode core, which imports nothing of the simulator: the models (`vla`, `drafter`,
-  `tokenizer`, `observation`, `scale`, `checkpoint`), the target-model interface
-  (`target_model`), the decoders and their rules (`spec_decode`, `hybrid`, `acceptance`,
-  `retrieval`, `kinematics`, `budget`, `cost_model`) and `sharding`;
-- the evaluation layer above it and `envs`: `methods`, `vla_policy`, `evaluate`,
-  `executable_store`, `replay`, `data`, `train` and `offline/` (datastore and boundary
-  builders). `envs` imports nothing of `heisd_jax`.
+Layers, arrows one way (tests/test_layers.py pins them):
+- the decode core, the modules of this package, which import nothing of the simulator: the
+  models (`vla`, `drafter`, `tokenizer`, `observation`, `scale`, `checkpoint`), the
+  target-model interface (`target_model`), the decoders and their rules (`spec_decode`,
+  `hybrid`, `acceptance`, `retrieval`, `kinematics`, `budget`, `cost_model`) and the
+  utilities (`sharding`, `timing`, `results_io`, `cache_dirs`, `rounded_products`);
+- `envs`, the simulation, which imports nothing of `heisd_jax`;
+- `heisd_jax.harness` above both: the methods, the evaluator, replay, training and the
+  offline builders;
+- `experiments/`, the entry points, on top.
 Names resolve on first use, so `import heisd_jax` itself imports nothing heavy and has no
 side effects (the env package, `envs`, sets its own XLA flags when imported).
 """

@@ -63,7 +63,7 @@ def _check(name, value, valid):
 @dataclasses.dataclass(frozen=True)
 class HybridConfig:
     """The hybrid decode's configuration. Its defaults are the shipped `heisd` method's (the
-    `heisd_jax.methods` record runs this config when given no settings; a datastore's
+    `heisd_jax.harness.methods` record runs this config when given no settings; a datastore's
     calibration fills the metric scales, boundary and skip_eps); `PAPER` is the paper's."""
     spec: spec_decode.SpecConfig = spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=9)  # drafter SD
     mode: str = "hybrid"

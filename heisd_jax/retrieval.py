@@ -1,6 +1,6 @@
 """The retrieval datastore at run time (REST-style; HeiSD's use: our design): its types,
 the query keys, the kNN query and loading. Building one offline is
-`heisd_jax.offline.datastore` (`python -m experiments.build_datastore`).
+`heisd_jax.harness.offline.datastore` (`python -m experiments.build_datastore`).
 
 Keys describe where the robot is in a task: the last `history` actions (normalised to
 [-1, 1] by the target's tokenizer; zeros before the episode start), the end-effector

@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import acceptance, budget, cost_model, hybrid, methods, spec_decode as sd, target_model, vla
+from heisd_jax import acceptance, budget, cost_model, hybrid, spec_decode as sd, target_model, vla
+from heisd_jax.harness import methods
 
 from tiny_models import CFG, HYBRID_B as B, candidates
 

@@ -16,7 +16,8 @@ import pytest
 
 import tiny_models
 from envs import language
-from heisd_jax import checkpoint, drafter, vla, vla_policy
+from heisd_jax import checkpoint, drafter, vla
+from heisd_jax.harness import vla_policy
 from heisd_jax.observation import Observation
 from heisd_jax.spec_decode import decode_action
 from heisd_jax.tokenizer import ActionTokenizer

@@ -62,7 +62,7 @@ def test_method_flags_are_the_settings_fields():
     from absl import app, flags
 
     from experiments import method_flags
-    from heisd_jax import methods
+    from heisd_jax.harness import methods
 
     fv = flags.FlagValues()
     names = method_flags.define(flag_values=fv)

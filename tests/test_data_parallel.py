@@ -1,4 +1,4 @@
-"""Data-parallel training (`train.make_train_step(..., mesh)`, `make_drafter_step`): steps
+"""Data-parallel training (`training.make_train_step(..., mesh)`, `make_drafter_step`): steps
 over 2 devices give the single-device steps' loss and update, up to the gradient's
 summation order, and a batch the devices cannot split evenly is refused by name.
 
@@ -19,7 +19,8 @@ SCRIPT = """
 import json
 import envs  # XLA CPU flags before JAX starts
 import jax, jax.numpy as jnp, numpy as np
-from heisd_jax import data, sharding, train, vla
+from heisd_jax import sharding, vla
+from heisd_jax.harness import data, training
 from heisd_jax.tokenizer import ActionTokenizer
 
 cfg = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
@@ -31,7 +32,7 @@ table = data.StepTable(image=rng.integers(0, 255, (n, 16, 16, 3), dtype=np.uint8
                        instruction=rng.integers(1, cfg.text_vocab, (n, cfg.text_len)).astype(np.int32),
                        action=np.tanh(rng.normal(size=(n, 7))).astype(np.float32))
 tok = ActionTokenizer.fit(table.action, cfg.vocab_size)
-tcfg = train.TrainConfig(steps=10, batch_size=8, lr=1e-2, warmup_steps=1, image_shift=2)
+tcfg = training.TrainConfig(steps=10, batch_size=8, lr=1e-2, warmup_steps=1, image_shift=2)
 mesh = sharding.env_mesh()
 whole = sharding.replicate
 key = jax.random.PRNGKey(3)
@@ -49,23 +50,23 @@ def compare(name, single, parallel):
                  "sharded_over": len(p2[0].sharding.device_set)}
 
 def state0(name):
-    return train.init_state(cfg, tcfg) if name == "vla" else train.init_drafter_state(cfg, tcfg)
+    return training.init_state(cfg, tcfg) if name == "vla" else training.init_drafter_state(cfg, tcfg)
 
 def twice(step, state, *args):  # the schedule's first step has a learning rate of 0
     state, _ = step(state, *args)
     return step(state, *args)
 
 t_single, t_mesh = jax.device_put(table), whole(mesh, table)
-step1, stepm = train.make_train_step(cfg, tcfg, tok), train.make_train_step(cfg, tcfg, tok, mesh)
+step1, stepm = training.make_train_step(cfg, tcfg, tok), training.make_train_step(cfg, tcfg, tok, mesh)
 compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key))
 
 tparams = state0("vla").params
 labels = tok.to_ids(table.action)
-d1, dm = train.make_drafter_step(cfg, tcfg), train.make_drafter_step(cfg, tcfg, mesh)
+d1, dm = training.make_drafter_step(cfg, tcfg), training.make_drafter_step(cfg, tcfg, mesh)
 compare("drafter", twice(d1, state0("drafter"), tparams, t_single, labels, key),
         twice(dm, whole(mesh, state0("drafter")), whole(mesh, tparams), t_mesh, whole(mesh, labels), key))
 try:
-    train.make_train_step(cfg, train.TrainConfig(steps=10, batch_size=7, warmup_steps=1), tok, mesh)
+    training.make_train_step(cfg, training.TrainConfig(steps=10, batch_size=7, warmup_steps=1), tok, mesh)
 except ValueError as e:
     out["indivisible"] = str(e)
 print("RESULT " + json.dumps(out))

@@ -69,7 +69,7 @@ def test_unknown_instruction_words_are_unk_or_refused_as_asked():
 
 
 def test_env_and_model_observations_agree_field_for_field():
-    from heisd_jax import vla_policy  # the evaluation layer: it converts one into the other
+    from heisd_jax.harness import vla_policy  # the evaluation layer: it converts one into the other
 
     assert vla.Observation is observation.Observation and envs.env.Observation is not vla.Observation
     names = lambda cls: [f.name for f in dataclasses.fields(cls)]  # noqa: E731
@@ -91,10 +91,8 @@ def _imports(path: Path, package: str) -> set[str]:
     return out
 
 
-def test_layers_run_one_way():
+def test_heisd_jax_has_no_import_cycles():  # the layers themselves: tests/test_layers.py
     root = Path(__file__).resolve().parents[1]
-    for path in (root / "envs").glob("*.py"):  # the simulator knows nothing of the decode core
-        assert not _imports(path, "heisd_jax"), f"{path.name} imports {_imports(path, 'heisd_jax')}"
     graph = {}
     for path in (root / "heisd_jax").rglob("*.py"):
         name = ".".join(path.relative_to(root).with_suffix("").parts).removesuffix(".__init__")

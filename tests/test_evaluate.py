@@ -11,7 +11,8 @@ import pytest
 
 from envs import language, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import checkpoint, evaluate as ev, methods, results_io, target_model, vla, vla_policy
+from heisd_jax import checkpoint, results_io, target_model, vla
+from heisd_jax.harness import evaluator as ev, methods, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
 
 # Tiny, but at the env camera's 64 px so it plugs into the real evaluator.

@@ -1,4 +1,4 @@
-"""The executable store (heisd_jax.executable_store): keys that change with what makes a program
+"""The executable store (heisd_jax.harness.executable_store): keys that change with what makes a program
 and only with it, entries that survive a fresh process (XLA:CPU's two traps included), and a
 bad entry read as a miss."""
 
@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import executable_store as xs
+from heisd_jax.harness import executable_store as xs
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -84,7 +84,7 @@ def _program(x):  # a LAPACK call on a CPU (Cholesky), as MJX's constraint solve
 _SCRIPT = """
 import sys, numpy as np, jax, jax.numpy as jnp
 from experiments import cli
-from heisd_jax import executable_store as xs
+from heisd_jax.harness import executable_store as xs
 from tests.test_executable_store import _program
 mode, store_dir, cache = sys.argv[1:4]
 cli.setup_compilation_cache(cache)
@@ -162,7 +162,7 @@ def test_the_resets_and_physics_programs_are_shared_by_rollouts_of_other_policie
     rollout of another policy, stored under another caller, loads them; its own it compiles."""
     from envs import expert, tasks  # noqa: PLC0415
     from envs.env import EnvConfig, TabletopEnv  # noqa: PLC0415
-    from heisd_jax import evaluate as ev  # noqa: PLC0415
+    from heisd_jax.harness import evaluator as ev  # noqa: PLC0415
 
     env = TabletopEnv(tasks.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
     splits = []

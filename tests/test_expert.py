@@ -6,7 +6,7 @@ import pytest
 
 from envs import expert, tasks
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods
+from heisd_jax.harness import evaluator as ev, methods
 
 # Two tasks per suite, covering every goal kind (place on plate / in basket / in zone, push,
 # stack, lift, two-stage).

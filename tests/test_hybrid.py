@@ -293,7 +293,7 @@ def test_config_rejects_bad_settings():
 def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     from envs import tasks
     from envs.env import TabletopEnv
-    from heisd_jax import methods
+    from heisd_jax.harness import methods
 
     env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
     policy = methods.make_policy("heisd", env, budget="fixed", top_k=4, depth=2, total_tokens=8)
@@ -325,7 +325,8 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
     and with row buckets (where a skip saves time), it is the HeiSD step."""
     from envs import tasks
     from envs.env import TabletopEnv
-    from heisd_jax import budget, cost_model, methods, vla_policy
+    from heisd_jax import budget, cost_model
+    from heisd_jax.harness import methods, vla_policy
 
     class Table:
         def __init__(self, fixed):
@@ -364,7 +365,7 @@ def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
     decode changes no other column. The store holds
     each row's AR action under the row's own key (accepted whole) and an action a full half
     of the bins away under a far key."""
-    from heisd_jax.offline import boundary  # noqa: PLC0415
+    from heisd_jax.harness.offline import boundary  # noqa: PLC0415
 
     params, obs, ar_tokens = tiny_hybrid
     tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)

@@ -7,7 +7,8 @@ import dataclasses
 
 import pytest
 
-from heisd_jax import acceptance, budget, hybrid, methods, spec_decode
+from heisd_jax import acceptance, budget, hybrid, spec_decode
+from heisd_jax.harness import methods
 
 
 def test_library_defaults_are_the_shipped_methods():

@@ -31,7 +31,7 @@ if n > 1:
     cli.setup_distributed(f"localhost:{port}", num_processes=n, process_id=pid)
 from envs import expert, tasks
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev
+from heisd_jax.harness import evaluator as ev
 
 env = TabletopEnv(tasks.get_tasks("all", sys.argv[4].split(",")), EnvConfig(render=False))
 policy = expert.policy(env)

@@ -1,4 +1,4 @@
-"""The offline builders (heisd_jax.offline): the boundary calibration's rule on a small
+"""The offline builders (heisd_jax.harness.offline): the boundary calibration's rule on a small
 synthetic measurement, and the run-time retrieval module standing without them."""
 
 import subprocess
@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-from heisd_jax.offline import boundary
+from heisd_jax.harness.offline import boundary
 
 
 def _measured(rng, n=40):
@@ -100,6 +100,6 @@ def test_closed_loop_steps_use_each_envs_own_executed_history():
 
 def test_runtime_retrieval_imports_without_the_builders():
     code = ("import sys, heisd_jax.retrieval; "
-            "bad = [m for m in sys.modules if m.startswith(('heisd_jax.offline', 'envs', 'mujoco'))]; "
+            "bad = [m for m in sys.modules if m.startswith(('heisd_jax.harness.offline', 'envs', 'mujoco'))]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -13,7 +13,8 @@ import jax.extend.core as jcore
 import numpy as np
 import pytest
 
-from heisd_jax import drafter, methods, spec_decode, vla
+from heisd_jax import drafter, spec_decode, vla
+from heisd_jax.harness import methods
 from tests.tiny_models import CFG, obs
 
 SPEC = spec_decode.SpecConfig(top_k=4, depth=3, total_tokens=10)

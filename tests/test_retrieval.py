@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from heisd_jax import retrieval
-from heisd_jax.offline import datastore
+from heisd_jax.harness.offline import datastore
 from heisd_jax.tokenizer import ActionTokenizer
 
 TOK = ActionTokenizer((-1.0,) * 7, (1.0,) * 7, 300)

@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from heisd_jax import drafter, methods, scale, spec_decode as sd, target_model, vla
+from heisd_jax import drafter, scale, spec_decode as sd, target_model, vla
+from heisd_jax.harness import methods
 
 from tiny_models import CFG, aligned_pair, ar, obs as make_obs
 

@@ -23,7 +23,7 @@ import envs  # XLA CPU flags before JAX starts
 import jax
 from envs import tasks
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev, methods
+from heisd_jax.harness import evaluator as ev, methods
 
 env = TabletopEnv(tasks.get_tasks("all", sys.argv[1].split(",")), EnvConfig(render=False))
 policy = methods.make_policy("expert", env)

@@ -8,7 +8,7 @@ import pytest
 
 from envs import expert, tasks
 from envs.env import EnvConfig, TabletopEnv
-from heisd_jax import evaluate as ev
+from heisd_jax.harness import evaluator as ev
 
 pytestmark = pytest.mark.slow  # two expert rollouts compiled (minutes on 2 CPU cores)
 

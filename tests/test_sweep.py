@@ -10,7 +10,8 @@ import jax
 import pytest
 
 from experiments import report
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from envs import demos, language
-from heisd_jax import checkpoint, data, train, vla
+from heisd_jax import checkpoint, vla
+from heisd_jax.harness import data, training
 from heisd_jax.tokenizer import ActionTokenizer
 
 CFG = vla.VLAConfig(image_size=16, patch_size=8, vision_layers=1, d_model=32, n_layers=2, n_heads=4, mlp_dim=64,
@@ -38,10 +39,10 @@ def test_a_few_training_steps_lower_the_loss(dataset):
     table = jax.device_put(data.load_steps(str(dataset)))
     assert table.size == 200 and table.instruction.shape == (200, CFG.text_len)
     tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
-    cfg = train.TrainConfig(steps=60, batch_size=32, lr=3e-3, warmup_steps=5)
-    state = train.init_state(CFG, cfg)
-    step = train.make_train_step(CFG, cfg, tok)
-    ev = train.make_eval_fn(CFG, tok, 128)
+    cfg = training.TrainConfig(steps=60, batch_size=32, lr=3e-3, warmup_steps=5)
+    state = training.init_state(CFG, cfg)
+    step = training.make_train_step(CFG, cfg, tok)
+    ev = training.make_eval_fn(CFG, tok, 128)
     key = jax.random.PRNGKey(0)
     before, _ = ev(state.params, table, key)
     for _ in range(cfg.steps):
@@ -54,14 +55,14 @@ def test_a_few_training_steps_lower_the_loss(dataset):
 
 def test_soft_bin_targets_are_distributions_with_the_label_as_mode():
     bins = jnp.array([[0, 17, 255]])
-    hard = train.soft_bin_targets(bins, 256, 0.0)
+    hard = training.soft_bin_targets(bins, 256, 0.0)
     np.testing.assert_array_equal(np.asarray(hard), np.asarray(jax.nn.one_hot(bins, 256)))
-    soft = np.asarray(train.soft_bin_targets(bins, 256, 2.0))
+    soft = np.asarray(training.soft_bin_targets(bins, 256, 2.0))
     np.testing.assert_allclose(soft.sum(-1), 1.0, rtol=1e-6)
     np.testing.assert_array_equal(soft.argmax(-1), np.asarray(bins))
     assert soft[0, 1, 16] == soft[0, 1, 18] > soft[0, 1, 19] > 0  # symmetric, decaying
     with pytest.raises(ValueError, match="label_sigma_bins"):
-        train.TrainConfig(label_sigma_bins=-1.0)
+        training.TrainConfig(label_sigma_bins=-1.0)
 
 
 def test_split_is_by_episode_and_disjoint(dataset):
@@ -121,12 +122,12 @@ def test_mismatched_config_is_refused(policy_ckpt, tmp_path):
 def test_drafter_training_lowers_its_loss_and_its_checkpoint_is_tied_to_the_target(dataset, policy_ckpt, tmp_path):
     tparams = policy_ckpt[1]
     table = jax.device_put(data.load_steps(str(dataset)))
-    tokens = train.greedy_tokens(tparams, CFG, table, batch=64)
+    tokens = training.greedy_tokens(tparams, CFG, table, batch=64)
     assert tokens.shape == (table.size, 7)
-    cfg = train.TrainConfig(steps=40, batch_size=32, lr=3e-3, warmup_steps=5)
-    state = train.init_drafter_state(CFG, cfg)
-    step = train.make_drafter_step(CFG, cfg)
-    ev = train.make_drafter_eval(CFG, 128)
+    cfg = training.TrainConfig(steps=40, batch_size=32, lr=3e-3, warmup_steps=5)
+    state = training.init_drafter_state(CFG, cfg)
+    step = training.make_drafter_step(CFG, cfg)
+    ev = training.make_drafter_eval(CFG, 128)
     key = jax.random.PRNGKey(0)
     before, _ = ev(state.params, tparams, table, tokens, key)
     for _ in range(cfg.steps):
@@ -151,8 +152,8 @@ def test_a_seed_fixes_the_initialisation_and_the_minibatch_order(dataset):
     tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
 
     def run(seed):
-        cfg = train.TrainConfig(steps=3, batch_size=16, lr=3e-3, warmup_steps=1, image_shift=2, seed=seed)
-        state, step = train.init_state(CFG, cfg), train.make_train_step(CFG, cfg, tok)
+        cfg = training.TrainConfig(steps=3, batch_size=16, lr=3e-3, warmup_steps=1, image_shift=2, seed=seed)
+        state, step = training.init_state(CFG, cfg), training.make_train_step(CFG, cfg, tok)
         key = jax.random.PRNGKey(cfg.seed + 1)  # as experiments.train draws it
         for _ in range(cfg.steps):
             state, _ = step(state, table, key)

@@ -132,7 +132,7 @@ def test_tiled_views_give_one_patch_grid_per_view():
 
 
 def test_random_shift_moves_each_view_on_its_own():
-    from heisd_jax import data
+    from heisd_jax.harness import data
 
     img = np.zeros((4, 8, 16, 3), np.uint8)
     img[:, :, 8:] = 255  # view 0 black, view 1 white

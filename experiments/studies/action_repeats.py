@@ -4,7 +4,7 @@ a target pass (a verify-skip on the recent candidate) would cost.
 
   python -m experiments.studies.action_repeats --suites=all --record_envs=16 --steps=100
 
-Records AR's closed-loop actions as `bench_methods` does (`heisd_jax.replay.record`), then
+Records AR's closed-loop actions as `bench_methods` does (`heisd_jax.harness.replay.record`), then
 reports, over steps where the episode runs:
   - per dimension, the bin distance between consecutive actions;
   - how often the previous action, as a draft, would be accepted whole by HeiSD's
@@ -29,7 +29,8 @@ import numpy as np
 
 from envs import language, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import acceptance, checkpoint, hybrid, methods, replay, results_io
+from heisd_jax import acceptance, checkpoint, hybrid, results_io
+from heisd_jax.harness import methods, replay
 from experiments import cli
 
 FLAGS = flags.FLAGS

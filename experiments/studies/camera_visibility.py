@@ -20,7 +20,8 @@ import numpy as np
 from envs import camera, expert, rollout
 from envs.env import TabletopEnv
 from experiments import cli
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle over.")

@@ -26,7 +26,8 @@ from mujoco import mjx
 from envs import ik, physics, proprio, scene, tasks as tasks_lib
 from envs.env import TabletopEnv, goals_achieved
 from experiments import cli
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 
 FLAGS = flags.FLAGS
 flags.DEFINE_enum("method", "expert", sorted(methods.METHODS), "Whose env (camera or not) and `act` to compile.")

@@ -8,7 +8,7 @@ other keys (issue "HeiSD on a target that succeeds", lever "datastore keys and c
 Records the target (greedy AR) on `--store_envs` training initial states (the datastore's
 episodes) and on `--query_envs` fixed evaluation states (the held-out queries), the scripted
 expert watching every step without acting. Each datastore below is then measured on the
-same held-out running steps with HeiSD's own verification (`heisd_jax.offline.boundary.
+same held-out running steps with HeiSD's own verification (`heisd_jax.harness.offline.boundary.
 measure`, as the boundary calibration does: the retrieved candidates verified first, drafter
 rounds for what they leave):
 
@@ -47,8 +47,9 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods, results_io, retrieval, vla, vla_policy
-from heisd_jax.offline import boundary, datastore
+from heisd_jax import results_io, retrieval, vla
+from heisd_jax.harness import methods, vla_policy
+from heisd_jax.harness.offline import boundary, datastore
 from experiments import cli
 
 FLAGS = flags.FLAGS

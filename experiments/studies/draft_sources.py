@@ -7,7 +7,7 @@ paper's "complementary advantages" analysis).
 Runs the target (greedy AR) on the fixed evaluation initial states while the scripted expert
 watches every step without acting and names the phase the state is in (approach, descend,
 grasp, lift, ...). Every running step is then decoded twice with `--method=heisd`'s settings
-(`heisd_jax.offline.boundary.measure`, as the boundary calibration does on held-out demos):
+(`heisd_jax.harness.offline.boundary.measure`, as the boundary calibration does on held-out demos):
 verifying the retrieved candidates first (drafter rounds for what they leave), and with
 drafter trees alone. The retrieval keys use the actions the target itself executed before
 the step. Prints and records, per expert phase and per bin of the fused kinematic metric:
@@ -31,8 +31,9 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods, results_io, vla_policy
-from heisd_jax.offline import boundary
+from heisd_jax import results_io
+from heisd_jax.harness import methods, vla_policy
+from heisd_jax.harness.offline import boundary
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 

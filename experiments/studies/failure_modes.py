@@ -26,7 +26,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import expert, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import methods
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 

@@ -32,7 +32,8 @@ import numpy as np
 from envs import physics, physics_agreement as pa, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
-from heisd_jax import evaluate as ev, methods, results_io
+from heisd_jax import results_io
+from heisd_jax.harness import evaluator as ev, methods
 
 OPTIONS = {
     "current": physics.PhysicsConfig(),

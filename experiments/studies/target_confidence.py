@@ -26,7 +26,8 @@ from absl import app, flags, logging
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import checkpoint, methods, results_io, target_model, vla, vla_policy
+from heisd_jax import checkpoint, results_io, target_model, vla
+from heisd_jax.harness import methods, vla_policy
 from heisd_jax.tokenizer import ACTION_DIM
 from experiments import cli
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import methods
+from heisd_jax.harness import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -34,7 +34,8 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, hybrid, methods, target_model, timing, vla
+from heisd_jax import budget, checkpoint, cost_model, hybrid, target_model, timing, vla
+from heisd_jax.harness import methods
 from experiments import cli
 
 FLAGS = flags.FLAGS

@@ -30,8 +30,8 @@ import numpy as np
 from envs import camera, expert, language, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from envs.rollout import Policy
-from heisd_jax import (acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, scale, spec_decode,
-                       vla, vla_policy)
+from heisd_jax import acceptance, budget, checkpoint, cost_model, hybrid, kinematics, retrieval, scale, spec_decode, vla
+from heisd_jax.harness import vla_policy
 
 DTYPES = ("float32", "bfloat16")
 BOUNDARY_FILE = "boundary.json"  # written into the datastore directory by experiments.calibrate_boundary

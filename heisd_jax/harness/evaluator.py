@@ -18,7 +18,8 @@ import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import executable_store, sharding
+from heisd_jax import sharding
+from heisd_jax.harness import executable_store
 
 
 @dataclasses.dataclass(frozen=True)
@@ -293,7 +294,7 @@ class BatchRollout:
             return compiled, split
         t0 = time.perf_counter()
         compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
-        sharding.sync(f"heisd_jax.evaluate: rollout {part} compiled")  # several hosts: the slowest counts
+        sharding.sync(f"heisd_jax.harness.evaluator: rollout {part} compiled")  # several hosts: the slowest counts
         t1 = time.perf_counter()
         split = {**split, "xla": t1 - t0}
         if key:

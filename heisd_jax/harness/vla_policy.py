@@ -19,9 +19,9 @@ from envs.rollout import Policy, Stats
 from heisd_jax import hybrid, spec_decode, target_model, vla
 from heisd_jax.tokenizer import INVALID_ID, ActionTokenizer
 
-DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[1] / "checkpoints" / "vla"
-DEFAULT_DRAFTER = Path(__file__).resolve().parents[1] / "checkpoints" / "drafter"
-DEFAULT_DATASTORE = Path(__file__).resolve().parents[1] / "checkpoints" / "datastore"
+DEFAULT_CHECKPOINT = Path(__file__).resolve().parents[2] / "checkpoints" / "vla"
+DEFAULT_DRAFTER = Path(__file__).resolve().parents[2] / "checkpoints" / "drafter"
+DEFAULT_DATASTORE = Path(__file__).resolve().parents[2] / "checkpoints" / "datastore"
 
 DecodeFn = Callable[[dict, vla.VLAConfig, vla.Observation], tuple[jnp.ndarray, Stats]]
 

@@ -27,7 +27,8 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from heisd_jax import data, drafter, target_model, vla
+from heisd_jax import drafter, target_model, vla
+from heisd_jax.harness import data
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 

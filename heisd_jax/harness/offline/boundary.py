@@ -1,6 +1,6 @@
 """Calibrates HeiSD's kinematic boundary and verify-skip threshold from held-out demo steps
 (`python -m experiments.calibrate_boundary`, which writes the record `calibrate` returns
-to <datastore>/boundary.json; `heisd_jax.methods.load_calibration` reads it back).
+to <datastore>/boundary.json; `heisd_jax.harness.methods.load_calibration` reads it back).
 
 `closed_loop_steps` turns a recorded closed-loop rollout into the same inputs (the
 draft-source analysis, `experiments.studies.draft_sources`). `measure` decodes every step twice with a heisd configuration: retrieval first
@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from heisd_jax import hybrid, kinematics, retrieval, vla
-from heisd_jax.offline.datastore import episode_history, in_batches
+from heisd_jax.harness.offline.datastore import episode_history, in_batches
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
 

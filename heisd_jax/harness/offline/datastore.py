@@ -20,7 +20,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from envs import demos, tasks as tasks_lib
-from heisd_jax import data, kinematics, target_model, vla
+from heisd_jax import kinematics, target_model, vla
+from heisd_jax.harness import data
 from heisd_jax.retrieval import FORMAT, Datastore, KeySpec, make_keys
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
