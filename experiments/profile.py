@@ -22,7 +22,8 @@ and masking overhead) and act's speedup over AR at this batch size. --trace_dir 
 (TensorBoard / Perfetto, one folder each) and prints and writes (`kernels`) their per-kernel
 time per call on each device timeline (`heisd_jax.timing.kernel_summary`): where a part's
 milliseconds go, kernel by kernel, and how much of a call the device spends waiting for the
-host (the call's median wall time less its kernels: graph launches, `while`-loop conditions
+host (the call's median wall time less its kernels), with the longest waits and the host
+event each waited for (`timing.device_gaps`: a CUDA-graph launch, a `while`-loop condition
 copied to the host, argument handling). --hlo_dir writes the three calls' optimised HLO (gzipped
 text), where those kernels' names (XLA's fusions) can be looked up.
 """
@@ -156,13 +157,14 @@ def main(argv):
         n_running += float(running.sum())
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
-    kernels = {}
+    kernels, gaps = {}, {}
     calls = {"act": (act, (params, states, pstate, act_keys)),
              "ar": (fns["ar"], (params, vla_policy.observation(states))), "env_step": (step, (states, actions))}
     for name, (fn, args) in calls.items():  # after the timed loop, so tracing slows no timed call
         if FLAGS.trace_dir:
             path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
             kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
+            gaps[name] = timing.device_gaps(path, top=FLAGS.top) if path else {}
         if FLAGS.hlo_dir:
             timing.write_hlo(fn, args, Path(FLAGS.hlo_dir) / f"{name}.hlo.txt.gz")
     med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
@@ -201,6 +203,13 @@ def main(argv):
                   f"(the device idle {idle:.3f} ms: launches, host syncs, argument handling)")
             for kname, ms in summary["top"]:
                 print(f"    {ms:9.3f}  {kname[:150]}")
+    for name, lines in gaps.items():
+        for line, rows in lines.items():
+            if rows:
+                print(f"  {name}: the device idle >= 0.5 ms, {line} (3 calls; longest first):")
+            for r in rows:
+                host = f"{r['host'][:60]} ({r['host_ms']:.2f} ms)" if r["host"] else "no host event"
+                print(f"    {r['ms']:7.3f} ms at {r['start_ms']:8.2f} ms, after {r['after'][:40]}: {host}")
     if FLAGS.trace_dir:
         print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
     if FLAGS.out:
@@ -208,7 +217,8 @@ def main(argv):
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "median_ms": med, "per_action": per_action,
                                                  "breakdown_ms": breakdown, "speedup_vs_ar": speedup,
-                                                 "control_steps_per_s": loop, "kernels": kernels})
+                                                 "control_steps_per_s": loop, "kernels": kernels,
+                                                 "device_gaps": gaps})
 
 
 if __name__ == "__main__":

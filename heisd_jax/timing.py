@@ -119,10 +119,8 @@ def write_hlo(fn, args: tuple, path: str | Path) -> Path:
     return path
 
 
-def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
-    """Per device timeline of a Perfetto trace (a GPU's process/stream, or the CPU's XLA
-    threads): {"total_ms": summed event time per call, "count": events per call, "top":
-    [(event name, ms per call)], largest first}. Event times are summed as recorded (nested events add up)."""
+def _timelines(path: str | Path) -> dict[str, list[dict]]:
+    """A Perfetto trace's complete ("X") events per timeline, "process | thread", in time order."""
     events = json.load(gzip.open(path))["traceEvents"]
     procs, threads = {}, {}
     for e in events:
@@ -130,14 +128,57 @@ def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
             procs[e["pid"]] = e["args"]["name"]
         if e.get("ph") == "M" and e.get("name") == "thread_name":
             threads[(e["pid"], e["tid"])] = e["args"]["name"]
-    by_line = collections.defaultdict(collections.Counter)
-    counts = collections.Counter()
+    lines = collections.defaultdict(list)
     for e in events:
-        if e.get("ph") != "X" or "dur" not in e:
+        if e.get("ph") == "X" and "dur" in e:
+            lines[f"{procs.get(e['pid'], '')} | {threads.get((e['pid'], e.get('tid')), '')}"].append(e)
+    return {line: sorted(evs, key=lambda e: e["ts"]) for line, evs in lines.items()}
+
+
+def _is_device(line: str) -> bool:
+    proc, _, thread = line.partition(" | ")
+    return proc.startswith("/device:") or thread.startswith("tf_XLA")
+
+
+def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
+    """Per device timeline of a Perfetto trace (a GPU's process/stream, or the CPU's XLA
+    threads): {"total_ms": summed event time per call, "count": events per call, "top":
+    [(event name, ms per call)], largest first}. Event times are summed as recorded (nested events add up)."""
+    out = {}
+    for line, evs in _timelines(path).items():
+        if _is_device(line):
+            c = collections.Counter()
+            for e in evs:
+                c[e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
+            out[line] = {"total_ms": sum(c.values()), "count": len(evs) / calls, "top": c.most_common(top)}
+    return out
+
+
+def device_gaps(path: str | Path, min_ms: float = 0.5, top: int = 10) -> dict[str, list[dict]]:
+    """Per device timeline of a Perfetto trace, its `top` longest idle stretches of at least
+    `min_ms` between the first and the last kernel, longest first: {"start_ms" (from the
+    timeline's first kernel), "ms", "after", "before" (the kernels around it), "host": the
+    innermost host event that covers most of the stretch, i.e. what the device waited for (a
+    CUDA-graph launch, a host sync, argument handling), "host_ms" its duration, or None}. At
+    batch 1 a large model's call can be mostly such waits; the kernels alone do not show them."""
+    lines = _timelines(path)
+    host = [e for line, evs in lines.items() if not _is_device(line) for e in evs]
+    out = {}
+    for line, evs in lines.items():
+        if not _is_device(line) or not evs:
             continue
-        proc, thread = procs.get(e["pid"], ""), threads.get((e["pid"], e.get("tid")), "")
-        if proc.startswith("/device:") or thread.startswith("tf_XLA"):
-            by_line[f"{proc} | {thread}"][e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
-            counts[f"{proc} | {thread}"] += 1
-    return {line: {"total_ms": sum(c.values()), "count": counts[line] / calls, "top": c.most_common(top)}
-            for line, c in by_line.items()}
+        t0, gaps = evs[0]["ts"], []
+        end, last = t0 + evs[0]["dur"], evs[0]["name"]  # where the device's work so far ends, and its kernel
+        for e in evs[1:]:
+            if e["ts"] - end >= min_ms * 1e3:
+                gaps.append((end, e["ts"], last, e["name"]))
+            if e["ts"] + e["dur"] >= end:
+                end, last = e["ts"] + e["dur"], e["name"]
+        rows = []
+        for a, b, after, before in sorted(gaps, key=lambda g: g[0] - g[1])[:top]:
+            covering = [h for h in host if min(b, h["ts"] + h["dur"]) - max(a, h["ts"]) >= 0.5 * (b - a)]
+            inner = min(covering, key=lambda h: h["dur"], default=None)
+            rows.append({"start_ms": (a - t0) / 1e3, "ms": (b - a) / 1e3, "after": after, "before": before,
+                         "host": inner["name"] if inner else None, "host_ms": inner["dur"] / 1e3 if inner else None})
+        out[line] = rows
+    return out

@@ -38,6 +38,7 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
         assert any((tmp_path / "trace" / part).rglob("*.xplane.pb")), part
         lines = r["kernels"][part]
         assert lines and all(s["total_ms"] > 0 and s["top"] for s in lines.values()), part
+        assert set(r["device_gaps"][part]) == set(lines), part  # the idle stretches of the same timelines
         with gzip.open(tmp_path / "hlo" / f"{part}.hlo.txt.gz", "rt") as f:  # where the kernels' names are
             assert "HloModule" in f.read(), part
     assert "act vs AR at batch 2" in out.stdout

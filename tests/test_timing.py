@@ -2,6 +2,7 @@
 jitted call shows up on a device timeline, with its time split per call."""
 
 import gzip
+import json
 
 import jax
 import jax.numpy as jnp
@@ -53,3 +54,26 @@ def test_in_graph_returns_the_pieces_output_from_its_timed_loop():
     assert int(out["n"]) == int(ref["n"])
     with pytest.raises(ValueError, match="1 <= n\\[0\\] < n\\[1\\]"):
         timing.in_graph_ms(piece, (w, x), n=(0, 3))
+
+
+def test_device_gaps_name_what_the_device_waited_for(tmp_path):
+    """A synthetic trace: kernels at 0-1 ms and 6-7 ms and 7.2-8 ms on a GPU stream, a host
+    call spanning all of it and, inside, a 4.9 ms graph launch over the first idle stretch."""
+    meta = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+            {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "Stream #7"}},
+            {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
+            {"ph": "M", "name": "thread_name", "pid": 2, "tid": 3, "args": {"name": "python"}}]
+    x = lambda pid, tid, name, ts, dur: {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
+    events = meta + [x(1, 7, "conv", 0, 1000), x(1, 7, "gemm", 6000, 1000), x(1, 7, "tail", 7200, 800),
+                     x(2, 3, "jit_act", 0, 9000), x(2, 3, "cuGraphLaunch (CudaGraph:17)", 1100, 4900)]
+    path = tmp_path / "t.json.gz"
+    with gzip.open(path, "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    gaps = timing.device_gaps(path, min_ms=0.1)
+    assert list(gaps) == ["/device:GPU:0 | Stream #7"]
+    first, second = gaps["/device:GPU:0 | Stream #7"]
+    assert first == {"start_ms": 1.0, "ms": 5.0, "after": "conv", "before": "gemm",
+                     "host": "cuGraphLaunch (CudaGraph:17)", "host_ms": 4.9}
+    assert second["ms"] == pytest.approx(0.2) and second["host"] == "jit_act"  # only the call covers it
+    assert timing.device_gaps(path, min_ms=1.0)["/device:GPU:0 | Stream #7"] == [first]
+    assert timing.kernel_summary(path, calls=1, top=3)["/device:GPU:0 | Stream #7"]["total_ms"] == pytest.approx(2.8)
