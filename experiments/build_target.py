@@ -61,7 +61,7 @@ flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
-flags.DEFINE_integer("train_devices", 1, "Local devices each training stage runs on, data parallel (0: all of them; "
+flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
                      "a stage of ~3-6 minutes on an H100): added to the drafter's training states, so it learns to "
@@ -200,6 +200,16 @@ def plan(w: Path) -> list[Stage]:
     return stages
 
 
+def local_device_count() -> int:
+    """JAX's local devices, counted in a child process: a backend started in this driver would
+    hold device memory that its stages (each a process of its own) need."""
+    r = subprocess.run([sys.executable, "-c", "import jax; print(jax.local_device_count())"], capture_output=True,
+                       text=True, timeout=300)
+    if r.returncode:
+        raise RuntimeError(f"counting JAX's local devices failed: {r.stderr.strip()[-2000:]}")
+    return int(r.stdout.strip().splitlines()[-1])
+
+
 def _settings() -> dict:
     keys = ("demo_episodes", "action_noise", "rounds", "dagger_episodes", "beta", "steps", "dagger_steps", "lr",
             "batch_size", "d_model", "n_layers", "drafter_steps", "rollout_episodes", "suites", "tasks",
@@ -312,9 +322,14 @@ def main(argv):
         raise app.UsageError(f"--label_sigma_bins must be >= 0, got {FLAGS.label_sigma_bins}")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
-    if FLAGS.train_devices < 0 or (FLAGS.train_devices and FLAGS.batch_size % FLAGS.train_devices):
-        raise app.UsageError(f"--train_devices={FLAGS.train_devices}: must be >= 0 (0: all local devices) and divide "
-                             f"--batch_size={FLAGS.batch_size}")
+    if FLAGS.train_devices < 0:
+        raise app.UsageError(f"--train_devices must be >= 0 (0: all local devices), got {FLAGS.train_devices}")
+    if not FLAGS.dry_run:
+        devices = FLAGS.train_devices or local_device_count()
+        if FLAGS.batch_size % devices:
+            raise app.UsageError(f"--batch_size={FLAGS.batch_size} must be a multiple of the {devices} devices each "
+                                 f"training stage splits it over (--train_devices={FLAGS.train_devices}, 0: all local "
+                                 f"devices); pass --train_devices or another --batch_size")
     _betas()
     from envs import tasks as tasks_lib  # noqa: PLC0415
 

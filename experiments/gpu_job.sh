@@ -27,6 +27,9 @@
 # drafter, datastore, eval_ar.json), else everything. JAX's compilation cache persists in
 # /tmp/gpu_job/jax_cache unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
 set -uo pipefail
+# NVLink multicast stays off (the leased hosts' own setting, kept here for every child): a
+# program that uses it can put a host's shared GPUs out of service.
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 SELF=$(realpath "$0")
 cd "$(dirname "$SELF")/.."  # repo root
 WORK=/tmp/gpu_job SITE=/tmp/site

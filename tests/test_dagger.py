@@ -2,6 +2,7 @@
 the entry points that collect and build refuse bad settings before they start."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -82,6 +83,16 @@ def test_build_target_refuses_a_work_dir_built_with_other_settings(tmp_path):
         r.stderr[-3000:]
     assert state.read_text() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["build.json", "logs"]  # no stage started
+
+
+def test_build_target_refuses_a_batch_its_devices_cannot_split(tmp_path):
+    """By default every training stage runs data parallel over all local devices (here two
+    forced CPU devices): a minibatch they cannot split evenly is refused before any stage runs."""
+    env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--batch_size=255"],
+                       capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300, env=env)
+    assert r.returncode != 0 and "must be a multiple of the 2 devices" in r.stderr, r.stderr[-3000:]
+    assert not (tmp_path / "w").exists()
 
 
 def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
