@@ -42,9 +42,15 @@ class SpecConfig:
     total_tokens: int = 32  # nodes verified per round (<= top_k * depth)
     acceptance: str = "strict"
     relax_bins: int = 0
+    # token_relaxed: rank a node's children by the drafter's probability that the target's
+    # choice lies within relax_bins of them, and keep them more than 2 x relax_bins apart, so
+    # their acceptance windows do not overlap (`spread_children`); off: EAGLE-2's top-k bins.
+    spread: bool = False
 
     def __post_init__(self):
         rules.check_rule(self.acceptance, rules.TOKEN_RULES)
+        if self.spread and (self.acceptance != "token_relaxed" or not self.relax_bins):
+            raise ValueError("spread draft trees are for token_relaxed acceptance with relax_bins >= 1")
         if not 1 <= self.top_k <= N_BINS or self.depth < 1:
             raise ValueError(f"top_k must be in 1..{N_BINS} and depth >= 1, got top_k={self.top_k} depth={self.depth}")
         if not 1 <= self.total_tokens <= self.top_k * self.depth:
@@ -88,8 +94,14 @@ def draft_tree(dparams, tparams, model: target_model.Model, spec: SpecConfig, dc
     slots = jnp.arange(cfg.cache_slots)
     prefix = vla.committed_slots(dcache)  # [B, S]
 
-    logp = jax.nn.log_softmax(t.action_head(tparams, root_feat))  # [B, 256]
-    score, bins = jax.lax.top_k(logp, k)  # level 1
+    r = spec.relax_bins if spec.spread else 0
+
+    def children(logits):
+        """[..., 256] logits -> (log-scores, bins) [..., k] of a node's k best children."""
+        logp = jax.nn.log_softmax(logits)
+        return spread_children(logp, k, r) if r else jax.lax.top_k(logp, k)
+
+    score, bins = children(t.action_head(tparams, root_feat))  # level 1: [B, k]
     parent = jnp.full((b, k), -1, jnp.int32)
     all_bins, all_score, all_parent = [bins], [score], [parent]
     anc_levels = [jnp.eye(k, m, dtype=bool)[None].repeat(b, 0)]  # [B, k, M]
@@ -107,11 +119,10 @@ def draft_tree(dparams, tparams, model: target_model.Model, spec: SpecConfig, dc
         mask = prefix[:, None, :] | tree_ok
         positions = (root_pos + level)[:, None].repeat(k, 1)
         feats, dcache = drafter.cached_pass(dparams, cfg, dcache, emb, parent_feat, positions, write, mask)
-        child_logp = jax.nn.log_softmax(t.action_head(tparams, feats))  # [B, k, 256]
-        cand = (all_score[-1][..., None] + child_logp).reshape(b, -1)
-        score, flat = jax.lax.top_k(cand, k)
-        par_local = flat // N_BINS
-        bins = flat % N_BINS
+        child_score, child_bins = children(t.action_head(tparams, feats))  # [B, k parents, k]
+        score, flat = jax.lax.top_k((all_score[-1][..., None] + child_score).reshape(b, -1), k)
+        par_local = flat // k
+        bins = jnp.take_along_axis(child_bins.reshape(b, -1), flat, 1)
         node_idx = level * k + jnp.arange(k)
         all_bins.append(bins)
         all_score.append(score)
@@ -120,6 +131,29 @@ def draft_tree(dparams, tparams, model: target_model.Model, spec: SpecConfig, dc
     depth = jnp.repeat(jnp.arange(1, d + 1), k)
     return Tree(bins=jnp.concatenate(all_bins, 1), score=jnp.concatenate(all_score, 1), depth=depth,
                 parent=jnp.concatenate(all_parent, 1), anc=jnp.concatenate(anc_levels, 1))
+
+
+def spread_children(logp: jnp.ndarray, k: int, r: int):
+    """The k children of a node for acceptance within r bins: [..., 256] log-probabilities ->
+    (scores, bins) [..., k]. A child's score is the log of the drafter's probability mass
+    within r bins of it (the chance that it is accepted, were the target to choose as the
+    drafter predicts); children are picked best first, each more than 2r bins from those
+    before it, so no two accept the same target choice. Where fewer than k such bins exist
+    the rest repeat the best with score -inf (never selected over a real node)."""
+    window = jnp.ones((2 * r + 1,), logp.dtype)
+    prob = jnp.exp(logp)
+    mass = jax.vmap(lambda p: jnp.convolve(p, window, mode="same"))(prob.reshape(-1, N_BINS)).reshape(logp.shape)
+    score = jnp.log(jnp.maximum(mass, 1e-30))
+    key = mass + 1e-3 * prob  # among near-equal windows, the one centred nearest the mode
+    bins_axis = jnp.arange(N_BINS)
+    out_s, out_b = [], []
+    for _ in range(k):
+        best = jnp.argmax(key, -1)
+        out_b.append(best)
+        out_s.append(jnp.where(jnp.isfinite(jnp.take_along_axis(key, best[..., None], -1)[..., 0]),
+                               jnp.take_along_axis(score, best[..., None], -1)[..., 0], -jnp.inf))
+        key = jnp.where(jnp.abs(bins_axis - best[..., None]) <= 2 * r, -jnp.inf, key)
+    return jnp.stack(out_s, -1), jnp.stack(out_b, -1)
 
 
 def select_nodes(tree: Tree, n: int) -> jnp.ndarray:

@@ -168,3 +168,52 @@ def test_spec_config_rejects_bad_settings():
         sd.SpecConfig(top_k=2, depth=2, total_tokens=5)
     with pytest.raises(ValueError, match="cache slots"):
         sd.SpecConfig(top_k=16, depth=8, total_tokens=50).check_fits(CFG)
+    with pytest.raises(ValueError, match="spread draft trees are for token_relaxed"):
+        sd.SpecConfig(spread=True)
+
+
+def test_spread_children_cover_disjoint_acceptance_windows():
+    r, k = 3, 4
+    p = np.full(256, 1e-6)
+    p[100:104] = [0.3, 0.25, 0.2, 0.05]  # one peak (as EAGLE's top-k would pick 100, 101, 102, 103)
+    p[30] = 0.1
+    p[200] = 0.09
+    logp = jnp.log(jnp.asarray(p / p.sum(), jnp.float32))[None]
+    score, bins = map(np.asarray, sd.spread_children(logp, k, r))
+    window = np.convolve(p / p.sum(), np.ones(2 * r + 1), mode="same")
+    assert window[bins[0, 0]] == pytest.approx(window.max(), rel=1e-3)  # the bin whose +-r window holds the most mass
+    assert bins[0, 0] in (100, 101)  # ... among equal windows, centred nearest the mode
+    np.testing.assert_allclose(score[0], np.log(window[bins[0]]), rtol=1e-5)
+    assert sorted(bins[0, 1:3].tolist()) == [30, 200]  # the other modes, not the peak's neighbours
+    assert all(abs(a - b) > 2 * r for i, a in enumerate(bins[0]) for b in bins[0, i + 1:])
+    assert np.all(np.diff(score[0]) <= 0)
+    # Fewer disjoint windows than children: the rest score -inf (never chosen over a real node).
+    wide, _ = sd.spread_children(logp, 12, 12)
+    assert np.isneginf(np.asarray(wide)[0, -2:]).all() and np.isfinite(np.asarray(wide)[0, :10]).all()
+
+
+def test_spread_tree_levels_keep_their_children_apart(params):
+    tp, dp = params
+    obs = make_obs()
+    _, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
+    feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
+                                       vla.embed_tokens(tp, jnp.full((B,), CFG.first_action_id)))
+    r = 5
+    spec = sd.SpecConfig(top_k=3, depth=3, total_tokens=9, acceptance="token_relaxed", relax_bins=r, spread=True)
+    tree = sd.draft_tree(dp, tp, CFG, spec, dcache, feat)
+    bins, parent = np.asarray(tree.bins), np.asarray(tree.parent)
+    for b in range(B):
+        for level in range(spec.depth):
+            nodes = range(level * spec.top_k, (level + 1) * spec.top_k)
+            for g in nodes:  # siblings (same parent) are more than 2r bins apart
+                for h in nodes:
+                    if g < h and parent[b, g] == parent[b, h]:
+                        assert abs(int(bins[b, g]) - int(bins[b, h])) > 2 * r
+    # Relaxed decoding with spread trees keeps every token within r bins of the target's choice.
+    tp2, dp2 = aligned_pair(0.35)
+    obs2 = make_obs(3)
+    tokens, _ = _decode(tp2, dp2, spec, obs2)
+    logits, _ = vla.forward(tp2, CFG, obs2, tokens)
+    p = CFG.prompt_len
+    greedy = np.asarray(jnp.argmax(vla.action_logits(CFG, logits[:, p - 1: p + 6]), -1))
+    assert np.all(np.abs(np.asarray(tokens) - CFG.first_action_id - greedy) <= r)

@@ -148,6 +148,8 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                          acceptance.TOKEN_RULES),
         "relax_bins": _S("relax_bins", "token_relaxed: accept a draft within this many bins of the target's "
                          "choice (strict acceptance: 0 unless given)."),
+        "spread": _S("spread_tree", "token_relaxed: a node's children ranked by the drafter's probability "
+                     "mass within relax_bins of them and kept more than 2 x relax_bins apart."),
     },
     hybrid.HybridConfig: {
         "mode": _S("mode", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES),
