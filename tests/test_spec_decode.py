@@ -68,28 +68,36 @@ def test_relaxed_acceptance_keeps_drafts_within_r_bins():
     np.testing.assert_array_equal(np.asarray(acceptance.token_accepted("strict", 0, draft, target)), [True, False, False, False, False])
 
 
-def test_relaxed_tokens_stay_within_r_of_the_target_greedy_choice():
-    """With relaxed acceptance each emitted token is within r bins of the target's greedy
-    token given the emitted prefix (checked by teacher forcing the target on the output)."""
+def _assert_within_r_of_the_target(spec):
+    """Each token relaxed decoding emits is within relax_bins of the target's greedy token
+    given the emitted prefix (checked by teacher forcing the target on the output)."""
     tp, dp = aligned_pair(0.35)
     obs = make_obs(3)
-    r = 6
-    tokens, _ = _decode(tp, dp, sd.SpecConfig(top_k=4, depth=4, total_tokens=16, acceptance="token_relaxed",
-                                              relax_bins=r), obs)
+    tokens, _ = _decode(tp, dp, spec, obs)
     logits, _ = vla.forward(tp, CFG, obs, tokens)
     p = CFG.prompt_len
     greedy = np.asarray(jnp.argmax(vla.action_logits(CFG, logits[:, p - 1: p + 6]), -1))
-    assert np.all(np.abs(np.asarray(tokens) - CFG.first_action_id - greedy) <= r)
+    assert np.all(np.abs(np.asarray(tokens) - CFG.first_action_id - greedy) <= spec.relax_bins)
+
+
+def test_relaxed_tokens_stay_within_r_of_the_target_greedy_choice():
+    _assert_within_r_of_the_target(sd.SpecConfig(top_k=4, depth=4, total_tokens=16, acceptance="token_relaxed",
+                                                 relax_bins=6))
+
+
+def _first_tree(params, spec):
+    """The draft tree below the first action token of a prefilled prompt."""
+    tp, dp = params
+    obs = make_obs()
+    _, hidden, x, _ = vla.prefill_features(tp, CFG, obs)
+    feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
+                                       vla.embed_tokens(tp, jnp.full((B,), CFG.first_action_id)))
+    return sd.draft_tree(dp, tp, CFG, spec, dcache, feat)
 
 
 def test_tree_structure_and_selection_keep_ancestors(params):
-    tp, dp = params
-    obs = make_obs()
-    _, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
-    feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
-                                       vla.embed_tokens(tp, jnp.full((B,), CFG.first_action_id)))
     spec = sd.SpecConfig(top_k=3, depth=4, total_tokens=7)
-    tree = sd.draft_tree(dp, tp, CFG, spec, dcache, feat)
+    tree = _first_tree(params, spec)
     anc, parent, score = map(np.asarray, (tree.anc, tree.parent, tree.score))
     m = spec.top_k * spec.depth
     for b in range(B):
@@ -193,14 +201,9 @@ def test_spread_children_cover_disjoint_acceptance_windows():
 
 
 def test_spread_tree_levels_keep_their_children_apart(params):
-    tp, dp = params
-    obs = make_obs()
-    _, hidden, x, cache = vla.prefill_features(tp, CFG, obs)
-    feat, dcache = drafter.prompt_pass(dp, CFG, x, hidden, vla.prompt_key_mask(CFG, obs.instruction),
-                                       vla.embed_tokens(tp, jnp.full((B,), CFG.first_action_id)))
     r = 5
     spec = sd.SpecConfig(top_k=3, depth=3, total_tokens=9, acceptance="token_relaxed", relax_bins=r, spread=True)
-    tree = sd.draft_tree(dp, tp, CFG, spec, dcache, feat)
+    tree = _first_tree(params, spec)
     bins, parent = np.asarray(tree.bins), np.asarray(tree.parent)
     for b in range(B):
         for level in range(spec.depth):
@@ -209,11 +212,4 @@ def test_spread_tree_levels_keep_their_children_apart(params):
                 for h in nodes:
                     if g < h and parent[b, g] == parent[b, h]:
                         assert abs(int(bins[b, g]) - int(bins[b, h])) > 2 * r
-    # Relaxed decoding with spread trees keeps every token within r bins of the target's choice.
-    tp2, dp2 = aligned_pair(0.35)
-    obs2 = make_obs(3)
-    tokens, _ = _decode(tp2, dp2, spec, obs2)
-    logits, _ = vla.forward(tp2, CFG, obs2, tokens)
-    p = CFG.prompt_len
-    greedy = np.asarray(jnp.argmax(vla.action_logits(CFG, logits[:, p - 1: p + 6]), -1))
-    assert np.all(np.abs(np.asarray(tokens) - CFG.first_action_id - greedy) <= r)
+    _assert_within_r_of_the_target(spec)  # relaxed decoding with spread trees
