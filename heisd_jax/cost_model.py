@@ -138,7 +138,7 @@ def calibrate(params, model: target_model.Model, hcfg: hybrid.HybridConfig, batc
     ms = lambda fn, *args: in_graph_ms(fn, args, reps=reps)  # noqa: E731
 
     prefill_ms, prefilled = in_graph(lambda tp, obs: target.prefill(tp, obs), (tp, obs), reps=reps)
-    logits, hidden, x, cache = prefilled
+    _, hidden, x, cache = prefilled
     pieces = {"prefill_ms": {"0": prefill_ms}, "cached_ms": {}}
 
     def cached_ms(t):

@@ -150,9 +150,9 @@ def spread_children(logp: jnp.ndarray, k: int, r: int):
     for _ in range(k):
         best = jnp.argmax(key, -1)
         out_b.append(best)
-        out_s.append(jnp.where(jnp.isfinite(jnp.take_along_axis(key, best[..., None], -1)[..., 0]),
-                               jnp.take_along_axis(score, best[..., None], -1)[..., 0], -jnp.inf))
-        key = jnp.where(jnp.abs(bins_axis - best[..., None]) <= 2 * r, -jnp.inf, key)
+        out_s.append(jnp.take_along_axis(score, best[..., None], -1)[..., 0])
+        taken = jnp.abs(bins_axis - best[..., None]) <= 2 * r
+        key, score = jnp.where(taken, -jnp.inf, key), jnp.where(taken, -jnp.inf, score)
     return jnp.stack(out_s, -1), jnp.stack(out_b, -1)
 
 
