@@ -47,6 +47,9 @@ flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,.
 flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
                     "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
                     "up to 4x); a task named in --suite_weights keeps the weight given there.")
+flags.DEFINE_bool("adapt_weights", True, "From the second DAgger round on, each round's collection gives every task "
+                  "episodes in proportion to how often the previous round's policy failed it there (collect_demos "
+                  "--weights_from: up to 4x, on top of --suite_weights), so the data follow where the policy fails.")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -152,7 +155,8 @@ def plan(w: Path) -> list[Stage]:
     data = [str(w / "demos")]
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
-        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, f"--policy={_policy(w, r - 1)}",
+        adapt = [f"--weights_from={w / f'dagger{r - 1}'}"] if FLAGS.adapt_weights and r > 1 else []
+        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *adapt, f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
@@ -224,6 +228,8 @@ def _settings() -> dict:
         out["label_sigma_bins"] = FLAGS.label_sigma_bins
     if FLAGS.seed:  # likewise
         out["seed"] = FLAGS.seed
+    if FLAGS.adapt_weights:  # likewise
+        out["adapt_weights"] = True
     return out
 
 
@@ -287,21 +293,6 @@ def install(w: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _failure_weights(path: str) -> list[str]:
-    """`envs.tasks.failure_weights` of the per-task success rates in an evaluation's results
-    JSON; ValueError naming the file when it is missing or holds no per-task summary."""
-    from envs import tasks as tasks_lib  # noqa: PLC0415
-
-    try:
-        with open(path) as f:
-            summary = json.load(f)["summary"]["tasks"]
-        rates = {name: float(row["success_rate"]) for name, row in summary.items()}
-    except (OSError, ValueError, KeyError, TypeError) as e:
-        raise ValueError(f"--weights_from {path}: not an evaluation's results JSON with per-task success "
-                         f"(summary.tasks.*.success_rate): {e}") from None
-    return tasks_lib.failure_weights(rates)
-
-
 def main(argv):
     del argv
     bad = sorted(set(FLAGS.skip) - set(SKIPPABLE))
@@ -336,7 +327,7 @@ def main(argv):
     try:
         tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         if FLAGS.weights_from:  # resolved to explicit entries, so build.json records the weights themselves
-            FLAGS.suite_weights = _failure_weights(FLAGS.weights_from) + list(FLAGS.suite_weights)
+            FLAGS.suite_weights = cli.failure_weights(FLAGS.weights_from) + list(FLAGS.suite_weights)
         tasks_lib.parse_suite_weights(FLAGS.suite_weights)
     except ValueError as e:
         raise app.UsageError(str(e)) from e

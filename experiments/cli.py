@@ -15,6 +15,7 @@ processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import os
 from pathlib import Path
@@ -150,6 +151,36 @@ def task_list(suites: str, names: list[str] | None = None) -> list:
         return tasks_lib.get_tasks(suites, names or None)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
+
+
+def failure_weights(path: str) -> list[str]:
+    """`envs.tasks.failure_weights` of a policy's per-task success rates, read from an
+    evaluation's results JSON (experiments.evaluate --out) or from a DAgger dataset
+    (collect_demos --policy: the success of the episodes that policy drove); ValueError
+    naming the path when it is neither."""
+    from envs import demos, tasks as tasks_lib  # noqa: PLC0415  (entry points that weigh nothing need not import envs)
+
+    if Path(path).is_dir():
+        try:
+            ds = demos.DemoDataset(path)
+        except (OSError, ValueError) as e:
+            raise ValueError(f"weights from {path}: not a complete dataset: {e}") from None
+        if ds.meta.get("policy", "expert") == "expert":
+            raise ValueError(f"weights from {path}: an expert dataset (its episodes are the successful ones only); "
+                             f"give a DAgger dataset (collect_demos --policy) or an evaluation's results JSON")
+        runs: dict[str, list[bool]] = {}
+        for r in ds.episodes:
+            runs.setdefault(r["task"], []).append(bool(r["success"]))
+        rates = {name: sum(v) / len(v) for name, v in runs.items()}
+    else:
+        try:
+            with open(path) as f:
+                summary = json.load(f)["summary"]["tasks"]
+            rates = {name: float(row["success_rate"]) for name, row in summary.items()}
+        except (OSError, ValueError, KeyError, TypeError) as e:
+            raise ValueError(f"weights from {path}: neither a DAgger dataset nor an evaluation's results JSON with "
+                             f"per-task success (summary.tasks.*.success_rate): {e}") from None
+    return tasks_lib.failure_weights(rates)
 
 
 def positive_int_list(flag_name: str) -> None:

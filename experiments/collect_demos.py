@@ -24,6 +24,7 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import camera, demos, expert, rollout, scene, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
+from heisd_jax import sharding
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -32,7 +33,11 @@ flags.DEFINE_integer("episodes_per_task", 50, "Training episodes attempted per t
 flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of these suites, or these tasks, get N times "
                   "--episodes_per_task (e.g. spatial:2,long:2 for the suites a policy fails most); a task's own "
                   "weight overrides its suite's; others 1.")
-flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel.")
+flags.DEFINE_string("weights_from", "", "A DAgger dataset (this command with --policy) or an evaluation's results "
+                    "JSON: each task gets episodes in proportion to how often that policy failed it "
+                    "(envs.tasks.failure_weights, up to 4x); a task named in --suite_weights keeps the weight given there.")
+flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel, split over --devices (a multiple of their number).")
+flags.DEFINE_integer("devices", 0, "Local devices the env batch is split over, data parallel (0: all of them).")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
 flags.DEFINE_bool("wrist", True, "Also render the wrist camera (tiled right of the agent view).")
 flags.DEFINE_string("policy", "", "DAgger: a VLA checkpoint that drives the episodes (greedy AR) while the expert "
@@ -60,8 +65,10 @@ def main(argv):
         raise app.UsageError("--beta needs --policy (without one the expert drives every step)")
     if FLAGS.first_episode < 0:
         raise app.UsageError("--first_episode must be >= 0")
+    mesh = device_mesh(FLAGS.devices, FLAGS.num_envs)
     try:
-        weights = tasks_lib.parse_suite_weights(FLAGS.suite_weights)
+        failures = cli.failure_weights(FLAGS.weights_from) if FLAGS.weights_from else []
+        weights = tasks_lib.parse_suite_weights(failures + list(FLAGS.suite_weights))
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     dagger = bool(FLAGS.policy)
@@ -86,18 +93,20 @@ def main(argv):
         executed_action_noise=FLAGS.action_noise,
         labels="expert actions on the policy's states (DAgger)" if dagger else "clean expert actions",
         policy=FLAGS.policy or "expert", beta=FLAGS.beta if dagger else 1.0,
+        episode_weights={t.name: tasks_lib.episode_weight(t, weights) for t in task_list},
         split="train",
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
     pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
              for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
-    batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs)
+    batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs, multiple=mesh.size)
     if dagger:
         # The policy's parameters are an argument, not constants baked into the program.
         run = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t, n,
                                                                  exec_noise=FLAGS.action_noise, teacher=policy,
                                                                  beta=FLAGS.beta), static_argnums=3)
-        record = lambda k, t, n: run(learner.params, k, t, n)  # noqa: E731
+        params = sharding.replicate(mesh, learner.params)
+        record = lambda k, t, n: run(params, k, t, n)  # noqa: E731
     else:
         record = jax.jit(lambda k, t, n: rollout.record_episodes(env, policy, k, t, n, exec_noise=FLAGS.action_noise),
                          static_argnums=2)
@@ -111,7 +120,9 @@ def main(argv):
                 pad = chunk + [chunk[-1]] * (size - len(chunk))
                 tids, eps = np.array(pad).T
                 keys = env.initial_state_keys(tids, eps, split="train")
-                final, traj = jax.device_get(record(keys, jnp.asarray(tids, jnp.int32), n_steps))
+                batch = sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32)))
+                with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
+                    final, traj = sharding.fetch(record(*batch, n_steps))
                 steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
                 for i, (t, e) in enumerate(chunk):
                     if not (final.success[i] or dagger):
@@ -144,13 +155,28 @@ def main(argv):
         print(f"kept {kept}/{len(pairs)} successful episodes ({kept / len(pairs):.1%}) -> {path}")
 
 
-def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs: int
+def device_mesh(devices: int, num_envs: int):
+    """The env mesh over the first `devices` local devices (0: all); UsageError when there are
+    fewer, or when they cannot split `num_envs` evenly."""
+    available = jax.local_device_count()
+    if not 0 <= devices <= available:
+        raise app.UsageError(f"--devices={devices}: {available} local devices here (0: all of them)")
+    mesh = sharding.env_mesh(jax.local_devices()[:devices or available])
+    try:
+        sharding.check_batch(num_envs, mesh)
+    except ValueError as e:
+        raise app.UsageError(f"--num_envs: {e}") from None
+    return mesh
+
+
+def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs: int, multiple: int = 1
                     ) -> list[tuple[int, int, list[tuple[int, int]]]]:
     """Splits (task index, episode) pairs into batches of at most `num_envs` that each hold
     tasks of one time limit: [(n_steps, batch size, pairs)]. A batch runs to its longest task's
     limit, so a 220-step task batched with 420-step ones would be simulated (and its frames
     recorded) for nearly twice its own limit. Within one limit the batches share one size, as
     small as the batch count allows (fewer padded slots than batches, not up to `num_envs`),
+    rounded up to a `multiple` (the devices the batch is split over; `num_envs` must be one),
     so each limit compiles one program."""
     by_limit: dict[int, list[tuple[int, int]]] = {}
     for t, e in pairs:
@@ -159,6 +185,7 @@ def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs
     for limit, group in sorted(by_limit.items()):
         n_batches = -(-len(group) // num_envs)
         size = -(-len(group) // n_batches)
+        size = -(-size // multiple) * multiple
         out += [(limit, size, group[i: i + size]) for i in range(0, len(group), size)]
     return out
 

@@ -2,8 +2,8 @@
 # Runs experiments on a leased GPU machine (the device tool), with the carried mujoco wheels.
 #
 #   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
-#   bash experiments/gpu_job.sh per-gpu -- CMD [ARGS...] [-- CMD ...] # command i on GPU i, all at once
-#   bash experiments/gpu_job.sh start -- CMD [ARGS...] [-- CMD ...]  # the same in the background
+#   bash experiments/gpu_job.sh per-gpu -- [@GPUS] CMD [ARGS...] [-- ...] # command i on GPU i, all at once
+#   bash experiments/gpu_job.sh start [per-gpu] -- CMD [ARGS...] [-- ...]  # either, in the background
 #   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
 #                                         (SECONDS is capped to end 40 s before the call's 600 s limit)
 #   bash experiments/gpu_job.sh stop [PATH...]                        # end the job, report, pack results
@@ -16,7 +16,9 @@
 # own output folder $OUT/gpuI (its $OUT, its job.log) and compilation cache, and waits for all:
 # the device tool counts a machine's time, not its GPUs', so a 2- or 4-GPU host runs that many
 # independent measurements for the price of one. Compare speeds within one command only (each
-# times its own baseline): the GPUs share the host's CPU and memory bandwidth.
+# times its own baseline): the GPUs share the host's CPU and memory bandwidth. A command that
+# begins with @GPUS (e.g. @0,1) runs on those GPUs instead, e.g. a data-parallel build on two
+# of a 4-GPU host's GPUs beside two one-GPU measurements: `per-gpu -- @0,1 CMD -- @2 CMD -- @3 CMD`.
 #
 # Each command's output is teed to job.log in the folder that comes back, which a command
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
@@ -34,7 +36,7 @@ SELF=$(realpath "$0")
 cd "$(dirname "$SELF")/.."  # repo root
 WORK=/tmp/gpu_job SITE=/tmp/site
 export PYTHONPATH=$SITE PYTHONUNBUFFERED=1 JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$WORK/jax_cache}
-usage() { echo "usage: $0 [start|per-gpu] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
+usage() { echo "usage: $0 [start] [per-gpu] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
 
 install() {
   [ -n "${GPU_JOB_SITE_READY:-}" ] && return
@@ -66,7 +68,7 @@ run() {  # runs the commands separated by `--` one after another; exits with the
 pack() {  # the PATHs given, else a build's finished stack, else everything, into $OUT
   local d=$WORK/out items=("$@") b v f
   if [ ${#items[@]} -eq 0 ]; then
-    b=$(cd "$d" && ls -d */build.json 2>/dev/null | head -n 1)
+    b=$(cd "$d" && ls -d */build.json */*/build.json 2>/dev/null | head -n 1)  # a build, or one under per-gpu's gpuI
     if [ -n "$b" ]; then
       b=${b%/build.json}; items=("$b/build.json" "$b/logs")
       v=$(cd "$d" && ls -d "$b"/vla[0-9]* 2>/dev/null | sort -V | tail -n 1)
@@ -96,7 +98,8 @@ case "${1:-}" in
     install
     for i in "${!cmds[@]}"; do
       ( eval "set -- ${cmds[$i]}"
-        export CUDA_VISIBLE_DEVICES=$i OUT=$OUT/gpu$i GPU_JOB_SITE_READY=1 \
+        gpu=$i; [[ "$1" == @* ]] && { gpu=${1#@}; shift; }
+        export CUDA_VISIBLE_DEVICES=$gpu OUT=$OUT/gpu$i GPU_JOB_SITE_READY=1 \
                JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR}_gpu$i
         run "$@" > /dev/null ) &
     done
@@ -105,7 +108,7 @@ case "${1:-}" in
     exit $rc
     ;;
   start)
-    [ "${2:-}" = "--" ] && [ $# -ge 3 ] || usage
+    { [ "${2:-}" = "--" ] && [ $# -ge 3 ]; } || { [ "${2:-}" = per-gpu ] && [ "${3:-}" = "--" ] && [ $# -ge 4 ]; } || usage
     kill -0 "$(cat "$WORK/pid" 2>/dev/null)" 2>/dev/null && { echo "a job is already running: poll it" >&2; exit 1; }
     install
     rm -rf "$WORK/out"; mkdir -p "$WORK/out"

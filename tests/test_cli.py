@@ -27,6 +27,7 @@ CASES = [
     ("studies.solver_iterations", ["--tolerances=1e-5,x"], "takes non-negative numbers"),
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
     ("collect_demos", ["--suite_weights=spatial:2,longg:3", "--out=/nonexistent/demos"], "bad suite weight 'longg:3'"),
+    ("collect_demos", ["--devices=9", "--out=/nonexistent/demos"], "--devices=9: 1 local devices here"),
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
     ("ship_autotune", ["--methods=ar,nope"], "unknown ['nope']; choose from ['ar', 'drafter', 'expert'"),
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
@@ -107,6 +108,10 @@ def test_collection_batches_hold_one_time_limit_each():
         assert {limits[t] for t, _ in chunk} == {n_steps} and len(chunk) <= size <= 4
     # 10 episodes of limit 220 in 3 batches of 4 (not 4 + 4 + 2 padded to 4): sizes equal per limit.
     assert [(n, s, len(c)) for n, s, c in batches] == [(220, 4, 4), (220, 4, 4), (220, 4, 2), (420, 3, 3), (420, 3, 2)]
+    # Split over 2 devices: every size even, the same episodes.
+    halves = horizon_batches(pairs, limits, num_envs=4, multiple=2)
+    assert sorted(p for _, _, chunk in halves for p in chunk) == sorted(pairs)
+    assert all(size % 2 == 0 and len(chunk) <= size <= 4 for _, size, chunk in halves)
 
 
 def test_ship_autotune_refuses_a_machine_without_a_gpu_before_compiling(tmp_path):

@@ -125,6 +125,9 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
         unknown = by_module[module] - set(out.split())
         assert not unknown, f"experiments.{module} does not define {sorted(unknown)}"
     assert "suite_weights" in by_module["collect_demos"] and "suite_weights" not in by_module["evaluate"]
+    rounds = {s.split()[0]: cmd for s, cmd in stages}
+    assert "--weights_from" not in rounds["dagger1"]  # no earlier round to weigh by
+    assert f"--weights_from={tmp_path / 'w' / 'dagger1'}" in rounds["dagger2"]  # the previous round's failures
 
 
 def test_failure_weights_follow_the_failure_rate():
@@ -161,4 +164,24 @@ def test_build_target_weights_from_an_evaluation(tmp_path):
     assert "--suite_weights=left_block_plate:4,pick_red_block:2,pick_red_block:3" in dagger
     ev.write_text("{}")
     r = subprocess.run(base + [f"--weights_from={ev}"], capture_output=True, text=True, cwd=root, timeout=300)
-    assert r.returncode != 0 and "not an evaluation's results JSON" in r.stderr, r.stderr[-3000:]
+    assert r.returncode != 0 and "nor an evaluation's results JSON" in r.stderr, r.stderr[-3000:]
+
+
+def test_failure_weights_from_a_dagger_dataset(tmp_path):
+    """A DAgger collection's own episodes give the next round's weights (the success of the
+    policy that drove them, per task); an expert dataset, which keeps successes only, is refused."""
+    from envs import demos
+    from experiments import cli
+
+    def dataset(path, policy, outcomes):
+        w = demos.DatasetWriter(path, {"policy": policy})
+        records = [dict(task=task, start=i, length=1, success=ok) for i, (task, ok) in enumerate(outcomes)]
+        w.add_shard({f: np.zeros((len(records), 1), np.float32) for f in demos.STEP_FIELDS}, records)
+        return w.finalize()
+
+    # left_block_plate: 1 of 3 succeeded (failure 2/3 -> 1 + 7, capped at 4); pick_red_block: 9 of 10 (-> 2).
+    outcomes = [("left_block_plate", i == 0) for i in range(3)] + [("pick_red_block", i > 0) for i in range(10)]
+    assert cli.failure_weights(str(dataset(tmp_path / "dagger", "runs/vla0", outcomes))) == [
+        "left_block_plate:4", "pick_red_block:2"]
+    with pytest.raises(ValueError, match="an expert dataset"):
+        cli.failure_weights(str(dataset(tmp_path / "demos", "expert", outcomes)))

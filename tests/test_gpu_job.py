@@ -40,3 +40,12 @@ def test_per_gpu_refuses_more_commands_than_gpus(tmp_path):
     r = _run(tmp_path, "--", "touch", "$OUT/a", "--", "touch", "$OUT/b", "--", "touch", "$OUT/c")
     assert r.returncode == 2 and "3 commands for 2 GPUs" in r.stderr
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+def test_per_gpu_command_named_gpus(tmp_path):
+    write = 'echo "$CUDA_VISIBLE_DEVICES" > "$0"'
+    r = _run(tmp_path, "--", "@0,1", "sh", "-c", write, "$OUT/where.txt", "--", "sh", "-c", write, "$OUT/where.txt")
+    assert r.returncode == 0, r.stderr
+    assert (tmp_path / "out" / "gpu0" / "where.txt").read_text().split() == ["0,1"]  # @GPUS given
+    assert (tmp_path / "out" / "gpu1" / "where.txt").read_text().split() == ["1"]  # command i on GPU i
