@@ -105,7 +105,7 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
                         f"--start={start}", "--steps=0", "--rounds=2", "--beta=0.5,0", "--suite_weights=long:2",
                         "--tasks=pick_red_block,left_block_plate", "--label_sigma_bins=1",
-                        "--rollout_episodes=10", "--datastore_source=rollouts"],
+                        "--rollout_episodes=10", "--datastore_source=rollouts", "--adapt_weights"],
                        capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     stages = [line.split(": python -m experiments.", 1) for line in r.stdout.splitlines() if ": python -m " in line]
