@@ -87,6 +87,7 @@ flags.DEFINE_string("start", "", "Start the DAgger rounds from this policy check
                     "policy on the demonstrations (continuing an earlier build).")
 cli.existing_dir("start", "policy checkpoint")
 
+TIME = {"time": r"\ntime: ([^\n]*)"}  # a collection's or evaluation's split of its seconds
 SKIPPABLE = ("eval", "drafter", "datastore", "calibration")
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -144,7 +145,7 @@ def plan(w: Path) -> list[Stage]:
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
-                    {"kept": r"kept (\d+/\d+)"}),
+                    {"kept": r"kept (\d+/\d+)", **TIME}),
               Stage("train0", ["train", "--model=vla", f"--demos={w / 'demos'}", f"--out={w / 'run0'}",
                                f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", f"--warmup_steps={min(300, FLAGS.steps // 4)}", *model,
                                f"--export={_policy(w, 0)}"], _policy(w, 0), acc)]
@@ -161,7 +162,7 @@ def plan(w: Path) -> list[Stage]:
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
-                            {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of"}))
+                            {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of", **TIME}))
         stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
                                           f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
                                           f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
@@ -174,7 +175,7 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage("eval", ["evaluate", "--method=ar", f"--checkpoint={final}", *scope,
                                      f"--episodes={FLAGS.eval_episodes}", f"--num_envs={FLAGS.num_envs}",
                                      f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
-                            {f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")},
+                            {**{f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")}, **TIME},
                             expected_episodes=n_tasks * FLAGS.eval_episodes))
     rollouts = w / "target_rollouts"
     datastore_from_rollouts = FLAGS.datastore_source == "rollouts" and "datastore" not in FLAGS.skip
@@ -185,7 +186,7 @@ def plan(w: Path) -> list[Stage]:
                                                 f"--episodes_per_task={FLAGS.rollout_episodes}",
                                                 f"--first_episode={100000 * (FLAGS.rounds + 1)}",
                                                 f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],
-                            rollouts, {"policy_success": r"policy success ([\d.]+%)"}))
+                            rollouts, {"policy_success": r"policy success ([\d.]+%)", **TIME}))
     if "drafter" not in FLAGS.skip:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
                                         f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",

@@ -14,6 +14,8 @@ where the policy goes wrong are the point). The dataset appears at --out only on
 from __future__ import annotations
 
 import dataclasses
+import time
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -100,16 +102,33 @@ def main(argv):
     pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
              for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
     batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs, multiple=mesh.size)
-    if dagger:
-        # The policy's parameters are an argument, not constants baked into the program.
-        run = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t, n,
-                                                                 exec_noise=FLAGS.action_noise, teacher=policy,
-                                                                 beta=FLAGS.beta), static_argnums=3)
+    if dagger:  # the policy's parameters are an argument, not constants baked into the program
+        learner_of = lambda p: dataclasses.replace(learner, params=p)  # noqa: E731
         params = sharding.replicate(mesh, learner.params)
-        record = lambda k, t, n: run(params, k, t, n)  # noqa: E731
+        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, learner_of(p), k, t, n,
+                                                                    exec_noise=FLAGS.action_noise, teacher=policy,
+                                                                    beta=FLAGS.beta), static_argnums=3)
     else:
-        record = jax.jit(lambda k, t, n: rollout.record_episodes(env, policy, k, t, n, exec_noise=FLAGS.action_noise),
-                         static_argnums=2)
+        params = None
+        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, policy, k, t, n, exec_noise=FLAGS.action_noise),
+                         static_argnums=3)
+    programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
+
+    def collect(batch, n_steps):
+        """One batch's final states and trajectories on the host; each stage's seconds added up."""
+        t0 = time.perf_counter()
+        key = (n_steps, batch[0].shape[0])
+        if key not in programs:  # one program per time limit and batch size
+            with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
+                programs[key] = record.lower(params, *batch, n_steps).compile()
+        t1 = time.perf_counter()
+        out = jax.block_until_ready(programs[key](params, *batch))
+        t2 = time.perf_counter()
+        out = sharding.fetch(out)
+        seconds.update(compile=seconds["compile"] + t1 - t0, run=seconds["run"] + t2 - t1,
+                       fetch=seconds["fetch"] + time.perf_counter() - t2)
+        return out
+
     agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
     kept = 0
     try:
@@ -120,9 +139,8 @@ def main(argv):
                 pad = chunk + [chunk[-1]] * (size - len(chunk))
                 tids, eps = np.array(pad).T
                 keys = env.initial_state_keys(tids, eps, split="train")
-                batch = sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32)))
-                with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
-                    final, traj = sharding.fetch(record(*batch, n_steps))
+                final, traj = collect(sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32))), n_steps)
+                t0 = time.perf_counter()
                 steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
                 for i, (t, e) in enumerate(chunk):
                     if not (final.success[i] or dagger):
@@ -141,11 +159,17 @@ def main(argv):
                 if records:
                     writer.add_shard({f: np.concatenate(v) for f, v in steps.items()}, records)
                 kept += len(records)
+                seconds["host"] += time.perf_counter() - t0
                 bar.update(job, advance=len(chunk), kept=kept)
+        t0 = time.perf_counter()
         path = writer.finalize()
+        seconds["host"] += time.perf_counter() - t0
     except BaseException:
         writer.abort()
         raise
+    print(f"time: {sum(seconds.values()):.0f}s = compile {seconds['compile']:.0f}s ({len(programs)} programs) + run "
+          f"{seconds['run']:.0f}s ({len(batches)} batches over {mesh.size} devices) + fetch {seconds['fetch']:.0f}s + "
+          f"host {seconds['host']:.0f}s (episodes sliced and written)")
     if dagger:
         n_succ = sum(r.get("success", False) for r in demos.DemoDataset(path).episodes)
         print(f"DAgger: {kept} episodes, policy success {n_succ / max(kept, 1):.1%} (beta {FLAGS.beta}); policy action "

@@ -108,7 +108,9 @@ def _tables():
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
     host = data.StepTable(*(np.concatenate([getattr(p, f) for p in parts])
                             for f in ("image", "proprio", "instruction", "action")))
-    print(f"{host.size} training steps in all; device {jax.devices()[0]}")
+    n = FLAGS.devices or jax.local_device_count()
+    print(f"{host.size} training steps in all; {n} x {jax.devices()[0].device_kind}"
+          f"{', data parallel' if n > 1 else ''}")
     return host, val_host, h, w // h
 
 
