@@ -6,7 +6,9 @@
   python -m experiments.collect_demos --policy=runs/vla0 --beta=0.3 --first_episode=1000 \
       --out=data/dagger1           # DAgger: the policy drives, the expert labels
 
-Episodes use the training initial-state keys (disjoint from the 50 evaluation states).
+The env batch is split over every local device (--devices): each steps its share of the envs,
+and the trajectories are gathered on the host. Episodes use the training initial-state keys
+(disjoint from the 50 evaluation states).
 Expert episodes are kept only when successful; DAgger episodes are kept whole (the states
 where the policy goes wrong are the point). The dataset appears at --out only once complete.
 """
