@@ -13,7 +13,8 @@ are published atomically by those commands), so rerunning the same command after
 interruption skips what is done and resumes the stage that was cut off (training resumes
 from its last orbax checkpoint). --work/build.json records the settings (a rerun with
 other settings is refused) and, per stage, its wall time and the figures it printed (DAgger
-success of the policy that drove, held-out token accuracy, evaluation success).
+success of the policy that drove, held-out token accuracy and decisiveness (the share of tokens
+whose greedy bin has probability > 0.5), evaluation success, a collection's time split).
 A persistent JAX compilation cache under --work makes recompiles of a resumed or repeated
 stage cheap.
 """
@@ -141,7 +142,7 @@ def plan(w: Path) -> list[Stage]:
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}"]
-    acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])'}
+    acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",

@@ -172,7 +172,8 @@ def train_vla(out: Path, cfg: training.TrainConfig):
         vloss, vm = eval_fn(_first(state.params), val_table, jax.random.fold_in(eval_key, s))
         return {"loss": float(m["loss"]), "token_acc": float(m["token_acc"].mean()), "val_loss": float(vloss),
                 "val_token_acc": [round(float(a), 4) for a in vm["token_acc"]],
-                "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]]}
+                "val_bin_err": [round(float(a), 2) for a in vm["bin_err"]],
+                "val_decisive": [round(float(a), 4) for a in vm["decisive"]]}
 
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
                                                       "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype},

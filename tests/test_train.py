@@ -44,13 +44,16 @@ def test_a_few_training_steps_lower_the_loss(dataset):
     step = training.make_train_step(CFG, cfg, tok)
     ev = training.make_eval_fn(CFG, tok, 128)
     key = jax.random.PRNGKey(0)
-    before, _ = ev(state.params, table, key)
+    before, untrained = ev(state.params, table, key)
     for _ in range(cfg.steps):
         state, m = step(state, table, key)
     after, metrics = ev(state.params, table, key)
     assert int(state.step) == cfg.steps
     assert float(after) < float(before) - 0.5, (float(before), float(after))
-    assert metrics["token_acc"].shape == metrics["bin_err"].shape == (7,)
+    assert metrics["token_acc"].shape == metrics["bin_err"].shape == metrics["decisive"].shape == (7,)
+    # An untrained head spreads its probability over the 256 bins: no token is decisive (> 0.5);
+    # training makes some of them so (the gripper's two states first).
+    assert float(np.max(untrained["decisive"])) == 0.0 and float(np.max(metrics["decisive"])) > 0.0
 
 
 def test_soft_bin_targets_are_distributions_with_the_label_as_mode():

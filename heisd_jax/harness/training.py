@@ -85,7 +85,9 @@ def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma: float) -> jnp.ndarra
 def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray,
                 label_sigma_bins: float = 0.0):
     """Mean cross-entropy of the action tokens given the prompt and the previous tokens, and
-    metrics per action dimension [7]: greedy token accuracy and mean absolute bin error."""
+    metrics per action dimension [7]: greedy token accuracy, mean absolute bin error, and the
+    share of tokens whose greedy bin has probability > 0.5 ("decisive": drafts and retrieved
+    actions are accepted where the target's choice is clear, not a near tie)."""
     logits, _ = vla.forward(params, model_cfg, obs, tokens, training=True)
     p = model_cfg.prompt_len
     pred = vla.action_logits(model_cfg, logits[:, p - 1: p - 1 + ACTION_DIM])  # [B, 7, 256]
@@ -94,7 +96,8 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
     loss = optax.softmax_cross_entropy(pred, soft).mean()
     greedy = jnp.argmax(pred, -1)
     return loss, {"token_acc": jnp.mean(greedy == target, axis=0),
-                  "bin_err": jnp.mean(jnp.abs(greedy - target), axis=0)}
+                  "bin_err": jnp.mean(jnp.abs(greedy - target), axis=0),
+                  "decisive": jnp.mean(jax.nn.softmax(pred.astype(jnp.float32), -1).max(-1) > 0.5, axis=0)}
 
 
 def _data_parallel(step, mesh: Mesh | None, batch_size: int):
