@@ -87,3 +87,24 @@ def test_every_declared_setting_is_some_methods():
     keys = {k for name in methods.METHODS for k in methods.settings(name)}
     declared = {s.key for table in methods.SETTINGS.values() for s in table.values()}
     assert declared == keys
+
+
+def test_a_method_computes_in_its_targets_own_dtype_unless_given():
+    """Numerics' dtype defaults to the dtype the target's parameters come in (its checkpoint's):
+    a bfloat16-stored target decodes in bfloat16, a float32 one in float32; a given dtype wins;
+    parameters in mixed dtypes are refused by name."""
+    import jax
+    import jax.numpy as jnp
+
+    import tiny_models
+    from heisd_jax import vla
+
+    params = vla.init_params(tiny_models.CFG, jax.random.PRNGKey(0))
+    bf16 = jax.tree.map(lambda x: x.astype(jnp.bfloat16), params)
+    for target, given, expected in [(bf16, {}, "bfloat16"), (params, {}, "float32"),
+                                    (bf16, {"dtype": "float32"}, "float32"), (params, {"dtype": "bfloat16"}, "bfloat16")]:
+        cfg, out = methods.in_numerics(tiny_models.CFG, methods.config("ar", given).numerics, target)
+        assert cfg.dtype == expected and {str(x.dtype) for x in jax.tree.leaves(out)} == {expected}
+    mixed = {**params, "head": jax.tree.map(lambda x: x.astype(jnp.bfloat16), params["head"])}
+    with pytest.raises(ValueError, match=r"target parameters in \['bfloat16', 'float32'\]"):
+        methods.in_numerics(tiny_models.CFG, methods.Numerics(), mixed)

@@ -59,10 +59,12 @@ def in_dtype(cfg: vla.VLAConfig, dtype: str, *params, matmul_precision: str | No
 
 @dataclasses.dataclass(frozen=True)
 class Numerics:
-    """How a VLA method's models compute: the parameters' and KV caches' dtype, the precision
+    """How a VLA method's models compute: the parameters' and KV caches' dtype (None: the
+    target's own, the dtype its checkpoint stores its parameters in: float32 for the shipped
+    target, bfloat16 for one exported with `train --export_param_dtype=bfloat16`), the precision
     of float32 matrix products, the architecture the target is expanded to, and whether the
     inference passes are unrolled."""
-    dtype: str = "float32"
+    dtype: str | None = None
     matmul_precision: str = vla.VLAConfig.matmul_precision
     target_scale: str = scale.SHIPPED
     unroll: bool = vla.VLAConfig.unroll
@@ -77,18 +79,30 @@ class Config:
     decode: spec_decode.SpecConfig | hybrid.HybridConfig | None = None
 
 
+def stored_dtype(params, default: str = "float32") -> str:
+    """The dtype a loaded target's floating-point parameters come in (its checkpoint's);
+    `default` for a tree that holds none."""
+    kinds = {str(x.dtype) for x in jax.tree.leaves(params) if jnp.issubdtype(x.dtype, jnp.floating)}
+    if not kinds:
+        return default
+    if len(kinds) != 1 or not kinds <= set(DTYPES):
+        raise ValueError(f"target parameters in {sorted(kinds)}: expected all in one of {', '.join(DTYPES)}")
+    return kinds.pop()
+
+
 def in_numerics(cfg: vla.VLAConfig, numerics: Numerics, target, drafter=None):
     """The target (and its drafter) at a method's numerics: expanded to `target_scale`
-    (`heisd_jax.scale`), in their dtype and matmul precision, the inference passes unrolled
-    or not. Returns (cfg, target params[, drafter params])."""
+    (`heisd_jax.scale`), in their dtype (by default the target's own, `stored_dtype`) and
+    matmul precision, the inference passes unrolled or not. Returns (cfg, target params[,
+    drafter params])."""
+    dtype = numerics.dtype or stored_dtype(target, cfg.dtype)
     big = scale.scaled_config(cfg, numerics.target_scale)  # refuses a scale smaller than the target first
     if big is not cfg:
-        scale.check_fits(cfg, numerics.target_scale, numerics.dtype)
-        dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, numerics.target_scale,
-                                                                    numerics.dtype)
-        target, cfg = scale.expand_target(target, cfg, numerics.target_scale, numerics.dtype)
+        scale.check_fits(cfg, numerics.target_scale, dtype)
+        dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, numerics.target_scale, dtype)
+        target, cfg = scale.expand_target(target, cfg, numerics.target_scale, dtype)
         drafter = dparams
-    cfg, *params = in_dtype(cfg, numerics.dtype, *(p for p in (target, drafter) if p is not None),
+    cfg, *params = in_dtype(cfg, dtype, *(p for p in (target, drafter) if p is not None),
                             matmul_precision=numerics.matmul_precision)
     return (dataclasses.replace(cfg, unroll=numerics.unroll), *params)
 
@@ -122,7 +136,8 @@ _S = Setting
 _CALIBRATED = "the datastore's calibration, if it has one, replaces the default"
 SETTINGS: dict[type, dict[str, Setting]] = {
     Numerics: {
-        "dtype": _S("dtype", "Parameters and KV cache in this dtype.", DTYPES),
+        "dtype": _S("dtype", "Parameters and KV cache in this dtype (default: the target checkpoint's own, the "
+                    "dtype it stores its parameters in).", DTYPES),
         "matmul_precision": _S("matmul_precision", "float32 matrix products: 'float32' in full float32 (the same "
                                "tokens at every batch size), 'default' at XLA's choice (TF32 tensor cores for some "
                                "shapes on recent NVIDIA GPUs), 'tf32' (GPUs) or 'bf16': that tensor-core algorithm "
@@ -261,12 +276,13 @@ def _values(bound: dict[str, Setting], cfg) -> dict:
 
 def settings_of(name: str, cfg) -> dict:
     """The settings in effect in config `cfg` of method `name`, key -> value as given (a
-    setting only used with another's value left out where that does not hold):
-    `config(name, settings_of(name, c)) == c` for a config `c` reached by settings."""
+    setting only used with another's value left out where that does not hold, and one whose
+    value is None, which stands for a default resolved at build time, e.g. the target's own
+    dtype): `config(name, settings_of(name, c)) == c` for a config `c` reached by settings."""
     bound = settings(name)
     out = _values(bound, cfg)
-    return {k: v for k, v in out.items()
-            if not bound[k].only_with or out[bound[k].only_with[0]] == bound[k].only_with[1]}
+    return {k: v for k, v in out.items() if v is not None
+            and (not bound[k].only_with or out[bound[k].only_with[0]] == bound[k].only_with[1])}
 
 
 def _replaced(cfg, updates: dict[tuple[str, ...], object]):
