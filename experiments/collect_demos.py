@@ -105,10 +105,9 @@ def main(argv):
              for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
     batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs, multiple=mesh.size)
     if dagger:  # the policy's parameters are an argument, not constants baked into the program
-        learner_of = lambda p: dataclasses.replace(learner, params=p)  # noqa: E731
         params = sharding.replicate(mesh, learner.params)
-        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, learner_of(p), k, t, n,
-                                                                    exec_noise=FLAGS.action_noise, teacher=policy,
+        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t,
+                                                                    n, exec_noise=FLAGS.action_noise, teacher=policy,
                                                                     beta=FLAGS.beta), static_argnums=3)
     else:
         params = None
@@ -127,8 +126,9 @@ def main(argv):
         out = jax.block_until_ready(programs[key](params, *batch))
         t2 = time.perf_counter()
         out = sharding.fetch(out)
-        seconds.update(compile=seconds["compile"] + t1 - t0, run=seconds["run"] + t2 - t1,
-                       fetch=seconds["fetch"] + time.perf_counter() - t2)
+        seconds["compile"] += t1 - t0
+        seconds["run"] += t2 - t1
+        seconds["fetch"] += time.perf_counter() - t2
         return out
 
     agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
@@ -184,10 +184,10 @@ def main(argv):
 def device_mesh(devices: int, num_envs: int):
     """The env mesh over the first `devices` local devices (0: all); UsageError when there are
     fewer, or when they cannot split `num_envs` evenly."""
-    available = jax.local_device_count()
-    if not 0 <= devices <= available:
-        raise app.UsageError(f"--devices={devices}: {available} local devices here (0: all of them)")
-    mesh = sharding.env_mesh(jax.local_devices()[:devices or available])
+    try:
+        mesh = sharding.local_mesh(devices)
+    except ValueError as e:
+        raise app.UsageError(f"--{e}") from None
     try:
         sharding.check_batch(num_envs, mesh)
     except ValueError as e:

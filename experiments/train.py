@@ -108,7 +108,7 @@ def _tables():
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
     host = data.StepTable(*(np.concatenate([getattr(p, f) for p in parts])
                             for f in ("image", "proprio", "instruction", "action")))
-    n = FLAGS.devices or jax.local_device_count()
+    n = sharding.local_mesh(FLAGS.devices).size
     print(f"{host.size} training steps in all; {n} x {jax.devices()[0].device_kind}"
           f"{', data parallel' if n > 1 else ''}")
     return host, val_host, h, w // h
@@ -116,8 +116,8 @@ def _tables():
 
 def _mesh():
     """The mesh of --devices local devices, or None for one device (plain jit)."""
-    n = FLAGS.devices or jax.local_device_count()
-    return sharding.env_mesh(jax.local_devices()[:n]) if n > 1 else None
+    mesh = sharding.local_mesh(FLAGS.devices)
+    return mesh if mesh.size > 1 else None
 
 
 def _place(mesh, tree):
@@ -234,10 +234,7 @@ def main(argv):
             path = getattr(FLAGS, name)
             if path and not Path(path).is_dir():
                 raise FileNotFoundError(f"--{name} {path}: no checkpoint there")
-        available = jax.local_device_count()
-        if not 0 <= FLAGS.devices <= available:
-            raise ValueError(f"--devices={FLAGS.devices}: {available} local devices are available (0: all of them)")
-        n = FLAGS.devices or available
+        n = sharding.local_mesh(FLAGS.devices).size
         if FLAGS.batch_size % n:
             raise ValueError(f"--batch_size={FLAGS.batch_size} cannot be split evenly over {n} devices; use a "
                              f"multiple of {n}")

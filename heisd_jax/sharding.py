@@ -24,6 +24,15 @@ def env_mesh(devices: Sequence[jax.Device] | None = None) -> Mesh:
     return Mesh(np.asarray(jax.devices() if devices is None else devices), (AXIS,))
 
 
+def local_mesh(devices: int = 0) -> Mesh:
+    """The mesh over the first `devices` local devices (0: all of them); ValueError naming how
+    many there are when `devices` is negative or more."""
+    available = jax.local_device_count()
+    if not 0 <= devices <= available:
+        raise ValueError(f"devices={devices}: {available} local devices here (0: all of them)")
+    return env_mesh(jax.local_devices()[:devices or available])
+
+
 def check_batch(num_envs: int, mesh: Mesh) -> None:
     if num_envs % mesh.size:
         raise ValueError(f"num_envs={num_envs} is not divisible by the {mesh.size} devices it is sharded over; "
