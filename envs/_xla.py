@@ -146,6 +146,11 @@ def supported(flags: dict[str, str]) -> dict[str, bool]:
     return {name: bool(cache[keys[name]]) for name in flags}
 
 
+# XLA_FLAGS as the user set them, before `configure` adds the project's own: results files
+# record them (`experiments.cli.command_line`), since they change what a run measures.
+USER_FLAGS = os.environ.get("XLA_FLAGS", "").strip()
+
+
 def configure() -> None:
     wanted = {name: value for name, value in FLAGS.items() if name not in os.environ.get("XLA_FLAGS", "")}
     for name, ok in supported(wanted).items():

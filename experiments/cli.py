@@ -80,9 +80,13 @@ def _prog() -> str:
 
 
 def command_line() -> str:
-    """This process's command as a user would type it again (`python -m MODULE --flag=...`), for
-    the results files that record what made them."""
-    return " ".join([_prog(), *(shlex.quote(a) for a in sys.argv[1:])])
+    """This process's command as a user would type it again (`python -m MODULE --flag=...`,
+    after `XLA_FLAGS=...` where the user set them), for the results files that record what made
+    them."""
+    from envs import _xla  # noqa: PLC0415
+
+    env = [f"XLA_FLAGS={shlex.quote(_xla.USER_FLAGS)}"] if _xla.USER_FLAGS else []
+    return " ".join([*env, _prog(), *(shlex.quote(a) for a in sys.argv[1:])])
 
 
 def fail(message: str) -> NoReturn:

@@ -121,3 +121,17 @@ def test_ship_autotune_refuses_a_machine_without_a_gpu_before_compiling(tmp_path
                        env={**os.environ, "JAX_PLATFORMS": "cpu"})
     assert r.returncode == 2 and "only on a GPU" in r.stderr, r.stderr[-2000:]
     assert not out.exists()
+
+
+def test_command_line_records_the_users_xla_flags(monkeypatch):
+    """A results file's command reruns the measurement: XLA_FLAGS the user set (they change
+    what a run measures, e.g. command buffers) come first; the project's own do not."""
+    from envs import _xla
+    from experiments import cli
+
+    monkeypatch.setattr(sys, "argv", ["x", "--batch=1", "--methods=ar;heisd"])
+    monkeypatch.setattr(_xla, "USER_FLAGS", "")
+    plain = cli.command_line()
+    assert "XLA_FLAGS" not in plain and plain.endswith("--batch=1 '--methods=ar;heisd'")
+    monkeypatch.setattr(_xla, "USER_FLAGS", "--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL")
+    assert cli.command_line() == "XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL " + plain
