@@ -145,10 +145,17 @@ def record_eval_starts(env: TabletopEnv, policy: Policy, n_envs: int, n_steps: i
 
 
 def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids: jnp.ndarray, n_steps: int,
-                    exec_noise: float = 0.0, teacher: Policy | None = None, beta: float = 0.0):
+                    exec_noise: float = 0.0, teacher: Policy | None = None, beta: float | jax.Array = 0.0,
+                    limit: jax.Array | int | None = None):
     """Like run_episodes for exactly `n_steps`, also returning the trajectory: a dict of
     [n_steps, B, ...] arrays (observation before each action, the action, ee kinematics,
     done, and the policy's per-step decode statistics under "stats").
+
+    limit: run only the first min(limit, n_steps) control steps (a traced int: the rows after
+    it stay zero). One compiled program then serves batches of every time limit up to
+    `n_steps`, where a static `n_steps` per limit compiles one program each; each step is
+    the same computation either way. `beta` may be traced too, so one program serves every
+    DAgger round's mixture.
 
     exec_noise: std of Gaussian noise added to the six motion dimensions of the *executed*
     action only; the recorded action is the policy's own (noise injection as in DART: more
@@ -180,7 +187,19 @@ def record_episodes(env: TabletopEnv, policy: Policy, keys: jax.Array, task_ids:
         executed = executed.at[:, :6].set(jnp.clip(executed[:, :6] + noise, -1.0, 1.0))
         return (jax.vmap(env.step)(state, executed), pstate, tstate), out
 
-    (state, _, _), traj = jax.lax.scan(body, (state, pstate, tstate), jnp.arange(n_steps))
+    carry = (state, pstate, tstate)
+    if limit is None:
+        (state, _, _), traj = jax.lax.scan(body, carry, jnp.arange(n_steps))
+        return state, traj
+
+    def step_into(t, c):  # one step, its records written into row t of the buffers
+        carry, bufs = c
+        carry, out = body(carry, t)
+        return carry, jax.tree.map(lambda b, o: jax.lax.dynamic_update_index_in_dim(b, o, t, 0), bufs, out)
+
+    rows = jax.eval_shape(lambda c: body(c, jnp.zeros((), jnp.int32))[1], carry)
+    bufs = jax.tree.map(lambda r: jnp.zeros((n_steps, *r.shape), r.dtype), rows)
+    (state, _, _), traj = jax.lax.fori_loop(0, jnp.minimum(limit, n_steps), step_into, (carry, bufs))
     return state, traj
 
 

@@ -62,6 +62,10 @@ flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half)
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
 flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every training stage (Gaussian targets of this "
                    "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target).")
+flags.DEFINE_enum("param_dtype", "float32", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
+                  "in (train --export_param_dtype); a policy runs in its stored dtype, so bfloat16 makes bf16 the "
+                  "precision of the DAgger rollouts, the evaluation and the installed target. Training always keeps "
+                  "float32 master weights and computes in bfloat16.")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
@@ -140,7 +144,7 @@ def plan(w: Path) -> list[Stage]:
     # Suite weights shape the training data only; the evaluation runs every task's fixed states.
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
-             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
+             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}"]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
@@ -233,6 +237,8 @@ def _settings() -> dict:
         out["seed"] = FLAGS.seed
     if FLAGS.adapt_weights:  # likewise
         out["adapt_weights"] = True
+    if FLAGS.param_dtype != "float32":  # likewise
+        out["param_dtype"] = FLAGS.param_dtype
     return out
 
 

@@ -104,28 +104,32 @@ def main(argv):
     pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
              for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
     batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs, multiple=mesh.size)
-    if dagger:  # the policy's parameters are an argument, not constants baked into the program
-        params = sharding.replicate(mesh, learner.params)
-        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, dataclasses.replace(learner, params=p), k, t,
-                                                                    n, exec_noise=FLAGS.action_noise, teacher=policy,
-                                                                    beta=FLAGS.beta), static_argnums=3)
-    else:
-        params = None
-        record = jax.jit(lambda p, k, t, n: rollout.record_episodes(env, policy, k, t, n, exec_noise=FLAGS.action_noise),
-                         static_argnums=3)
-    programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
+    # One program for the whole collection: the policy's parameters, beta and each batch's time
+    # limit are arguments, not constants baked in, so batches of every limit, and every DAgger
+    # round of a build (through the persistent compilation cache), run the same executable.
+    params = sharding.replicate(mesh, learner.params) if dagger else None
+    n_steps = max(limit for limit, _, _ in batches)
 
-    def collect(batch, n_steps):
-        """One batch's final states and trajectories on the host; each stage's seconds added up."""
+    def record_fn(p, beta, keys, tids, limit):
+        acting = dataclasses.replace(learner, params=p) if dagger else policy
+        mix = dict(teacher=policy, beta=beta) if dagger else {}
+        return rollout.record_episodes(env, acting, keys, tids, n_steps, exec_noise=FLAGS.action_noise, limit=limit, **mix)
+
+    programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
+    beta = jnp.float32(FLAGS.beta)
+
+    def collect(batch, limit):
+        """One batch's final states and first `limit` steps of trajectories on the host; each
+        stage's seconds added up."""
         t0 = time.perf_counter()
-        key = (n_steps, batch[0].shape[0])
-        if key not in programs:  # one program per time limit and batch size
+        size = batch[0].shape[0]
+        if size not in programs:
             with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
-                programs[key] = record.lower(params, *batch, n_steps).compile()
+                programs[size] = jax.jit(record_fn).lower(params, beta, *batch, jnp.int32(limit)).compile()
         t1 = time.perf_counter()
-        out = jax.block_until_ready(programs[key](params, *batch))
+        final, traj = jax.block_until_ready(programs[size](params, beta, *batch, jnp.int32(limit)))
         t2 = time.perf_counter()
-        out = sharding.fetch(out)
+        out = sharding.fetch((final, jax.tree.map(lambda x: x[:limit], traj)))  # the rows it ran
         seconds["compile"] += t1 - t0
         seconds["run"] += t2 - t1
         seconds["fetch"] += time.perf_counter() - t2
@@ -137,11 +141,11 @@ def main(argv):
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
                       TextColumn("kept {task.fields[kept]}"), TimeRemainingColumn()) as bar:
             job = bar.add_task("collecting", total=len(pairs), kept=0)
-            for n_steps, size, chunk in batches:
+            for limit, size, chunk in batches:
                 pad = chunk + [chunk[-1]] * (size - len(chunk))
                 tids, eps = np.array(pad).T
                 keys = env.initial_state_keys(tids, eps, split="train")
-                final, traj = collect(sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32))), n_steps)
+                final, traj = collect(sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32))), limit)
                 t0 = time.perf_counter()
                 steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
                 for i, (t, e) in enumerate(chunk):
@@ -198,22 +202,24 @@ def device_mesh(devices: int, num_envs: int):
 def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs: int, multiple: int = 1
                     ) -> list[tuple[int, int, list[tuple[int, int]]]]:
     """Splits (task index, episode) pairs into batches of at most `num_envs` that each hold
-    tasks of one time limit: [(n_steps, batch size, pairs)]. A batch runs to its longest task's
+    tasks of one time limit: [(limit, batch size, pairs)]. A batch runs to its longest task's
     limit, so a 220-step task batched with 420-step ones would be simulated (and its frames
-    recorded) for nearly twice its own limit. Within one limit the batches share one size, as
-    small as the batch count allows (fewer padded slots than batches, not up to `num_envs`),
-    rounded up to a `multiple` (the devices the batch is split over; `num_envs` must be one),
-    so each limit compiles one program."""
+    recorded) for nearly twice its own limit. Every batch has one size, so that one compiled
+    program (whose time limit is an argument) runs them all: the largest that any limit's
+    batches need, each limit's as small as its batch count allows (fewer padded slots than
+    batches, not up to `num_envs`), rounded up to a `multiple` (the devices the batch is split
+    over; `num_envs` must be one). A padded slot costs a repeated episode's simulation, which
+    is far cheaper than compiling a second program."""
     by_limit: dict[int, list[tuple[int, int]]] = {}
     for t, e in pairs:
         by_limit.setdefault(int(max_steps[t]), []).append((t, e))
-    out = []
-    for limit, group in sorted(by_limit.items()):
+    sizes = {}
+    for limit, group in by_limit.items():
         n_batches = -(-len(group) // num_envs)
-        size = -(-len(group) // n_batches)
-        size = -(-size // multiple) * multiple
-        out += [(limit, size, group[i: i + size]) for i in range(0, len(group), size)]
-    return out
+        sizes[limit] = -(-(-(-len(group) // n_batches)) // multiple) * multiple
+    size = max(sizes.values())
+    return [(limit, size, group[i: i + sizes[limit]]) for limit, group in sorted(by_limit.items())
+            for i in range(0, len(group), sizes[limit])]
 
 
 if __name__ == "__main__":

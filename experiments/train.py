@@ -149,7 +149,7 @@ def train_vla(out: Path, cfg: training.TrainConfig):
     mngr = checkpoint.manager(out / "state")
     state = training.init_state(model_cfg, cfg)
     if init is not None:
-        state = state.replace(params=init[0])
+        state = training.continue_from(state, init[0])
         tok = init[2]
     else:
         tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)

@@ -97,17 +97,18 @@ def test_suite_weights_parse_and_name_the_bad_entry():
     assert tasks.episode_weight(by_name["pick_red_block"], weights) == 1  # not named
 
 
-def test_collection_batches_hold_one_time_limit_each():
+def test_collection_batches_hold_one_time_limit_each_and_share_one_size():
     from experiments.collect_demos import horizon_batches
 
     limits = [220, 420, 220]
     pairs = [(t, e) for t in range(3) for e in range(5)]
     batches = horizon_batches(pairs, limits, num_envs=4)
     assert sorted(p for _, _, chunk in batches for p in chunk) == sorted(pairs)  # every episode once
-    for n_steps, size, chunk in batches:
-        assert {limits[t] for t, _ in chunk} == {n_steps} and len(chunk) <= size <= 4
-    # 10 episodes of limit 220 in 3 batches of 4 (not 4 + 4 + 2 padded to 4): sizes equal per limit.
-    assert [(n, s, len(c)) for n, s, c in batches] == [(220, 4, 4), (220, 4, 4), (220, 4, 2), (420, 3, 3), (420, 3, 2)]
+    for limit, size, chunk in batches:
+        assert {limits[t] for t, _ in chunk} == {limit} and len(chunk) <= size <= 4
+    # 10 episodes of limit 220 in 3 batches, 5 of limit 420 in 2 of 3 and 2: as few batches as
+    # each limit needs, all of one size (one compiled program runs them all).
+    assert [(n, s, len(c)) for n, s, c in batches] == [(220, 4, 4), (220, 4, 4), (220, 4, 2), (420, 4, 3), (420, 4, 2)]
     # Split over 2 devices: every size even, the same episodes.
     halves = horizon_batches(pairs, limits, num_envs=4, multiple=2)
     assert sorted(p for _, _, chunk in halves for p in chunk) == sorted(pairs)

@@ -34,12 +34,15 @@ def runs():
     dagger = jax.jit(lambda beta: rollout.record_episodes(env, learner, keys, TASKS, N_STEPS, teacher=teacher,
                                                           beta=beta)[1])
     plain = jax.jit(lambda: rollout.record_episodes(env, teacher, keys, TASKS, N_STEPS)[1])
-    return dagger(1.0), dagger(0.0), plain()
+    # The teacher's own rollout again, as one program with a traced time limit runs it: the
+    # first N_STEPS of 4 more rows.
+    limited = jax.jit(lambda limit: rollout.record_episodes(env, teacher, keys, TASKS, N_STEPS + 4, limit=limit))
+    return dagger(1.0), dagger(0.0), plain(), limited(jnp.int32(N_STEPS))
 
 
 @pytest.mark.slow  # the `runs` fixture compiles three expert/learner rollouts: ~3 min on 2 cores
 def test_beta_one_is_the_teachers_own_rollout(runs):
-    at_one, _, own = runs
+    at_one, _, own, _ = runs
     for field in ("proprio", "action", "ee_vel"):  # two programs: equal up to float rounding
         np.testing.assert_allclose(at_one[field], own[field], atol=1e-4)
     np.testing.assert_array_equal(at_one["policy_action"][..., 6], -1.0)  # the learner's own, recorded beside
@@ -47,13 +50,22 @@ def test_beta_one_is_the_teachers_own_rollout(runs):
 
 @pytest.mark.slow
 def test_beta_zero_labels_the_learners_states(runs):
-    _, at_zero, own = runs
+    _, at_zero, own, _ = runs
     # The arm does not move under the still learner (only the servos settle) ...
     drift = np.abs(at_zero["proprio"][-1, :, :3] - at_zero["proprio"][0, :, :3]).max()
     assert drift < 0.01, drift
     # ... while the labels are the expert's commands to move, away from the expert's own states.
     assert np.abs(at_zero["action"][:, :, :3]).max() > 0.5
     assert np.abs(own["proprio"][-1, :, :3] - at_zero["proprio"][-1, :, :3]).max() > 0.02
+
+
+@pytest.mark.slow
+def test_a_traced_time_limit_runs_the_same_steps_and_leaves_the_rest_zero(runs):
+    _, _, own, (final, limited) = runs
+    np.testing.assert_array_equal(np.asarray(final.step), [N_STEPS, N_STEPS])  # stopped at the limit
+    for field in ("proprio", "action", "ee_vel"):
+        np.testing.assert_allclose(limited[field][:N_STEPS], own[field], atol=1e-4)  # two programs: rounding
+        assert not np.any(limited[field][N_STEPS:])
 
 
 def test_collect_demos_rejects_beta_without_policy(tmp_path):

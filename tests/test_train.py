@@ -56,6 +56,19 @@ def test_a_few_training_steps_lower_the_loss(dataset):
     assert float(np.max(untrained["decisive"])) == 0.0 and float(np.max(metrics["decisive"])) > 0.0
 
 
+def test_training_continues_from_a_bf16_policy_in_float32_master_weights(dataset):
+    table = jax.device_put(data.load_steps(str(dataset)))
+    tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
+    cfg = training.TrainConfig(steps=2, batch_size=16, lr=3e-3, warmup_steps=1)
+    stored = checkpoint.as_param_dtype(vla.init_params(CFG, jax.random.PRNGKey(7)), "bfloat16")
+    state = training.continue_from(training.init_state(CFG, cfg), stored)
+    for own, new in zip(jax.tree.leaves(state.params), jax.tree.leaves(stored)):
+        assert own.dtype == jnp.float32 and new.dtype == jnp.bfloat16
+        np.testing.assert_array_equal(own, new.astype(jnp.float32))  # the stored values, exactly
+    state, _ = training.make_train_step(CFG, cfg, tok)(state, table, jax.random.PRNGKey(0))
+    assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(state.params))  # updates stay in float32
+
+
 def test_soft_bin_targets_are_distributions_with_the_label_as_mode():
     bins = jnp.array([[0, 17, 255]])
     hard = training.soft_bin_targets(bins, 256, 0.0)

@@ -72,6 +72,14 @@ def init_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState:
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
 
 
+def continue_from(state: TrainState, params) -> TrainState:
+    """`state` with `params` (a policy checkpoint's, e.g. a DAgger round's starting point) as its
+    parameters, cast to the state's own dtypes: the float32 master weights. A policy stored
+    in bfloat16 would otherwise make the master weights bfloat16, where the optimizer's small
+    updates round away (and optax keeps each parameter's dtype)."""
+    return state.replace(params=jax.tree.map(lambda new, own: jnp.asarray(new, own.dtype), params, state.params))
+
+
 def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma: float) -> jnp.ndarray:
     """[..., n_bins] target distributions: a Gaussian of std `sigma` bins around each bin
     (one-hot when sigma is 0)."""
