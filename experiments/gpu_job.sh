@@ -19,6 +19,9 @@
 # times its own baseline): the GPUs share the host's CPU and memory bandwidth. A command that
 # begins with @GPUS (e.g. @0,1) runs on those GPUs instead, e.g. a data-parallel build on two
 # of a 4-GPU host's GPUs beside two one-GPU measurements: `per-gpu -- @0,1 CMD -- @2 CMD -- @3 CMD`.
+# Every `--` starts the next GPU's command (more commands than GPUs: the job does not start), so
+# several commands in turn on one GPU go in one shell: `-- @3 bash -c 'CMD1; CMD2 --out=$OUT/x'`.
+# A lent multi-GPU host can be taken back mid-job: poll often, naming each build's build.json.
 #
 # Each command's output is teed to job.log in the folder that comes back, which a command
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
