@@ -216,7 +216,8 @@ def horizon_batches(pairs: list[tuple[int, int]], max_steps: list[int], num_envs
     sizes = {}
     for limit, group in by_limit.items():
         n_batches = -(-len(group) // num_envs)
-        sizes[limit] = -(-(-(-len(group) // n_batches)) // multiple) * multiple
+        per_batch = -(-len(group) // n_batches)  # ceiling divisions
+        sizes[limit] = -(-per_batch // multiple) * multiple
     size = max(sizes.values())
     return [(limit, size, group[i: i + sizes[limit]]) for limit, group in sorted(by_limit.items())
             for i in range(0, len(group), sizes[limit])]
