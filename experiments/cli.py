@@ -15,6 +15,7 @@ processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`
 from __future__ import annotations
 
 import dataclasses
+import gzip
 import json
 import logging
 import os
@@ -178,13 +179,24 @@ def failure_weights(path: str) -> list[str]:
         rates = {name: sum(v) / len(v) for name, v in runs.items()}
     else:
         try:
-            with open(path) as f:
-                summary = json.load(f)["summary"]["tasks"]
+            summary = load_eval_results(path)["summary"]["tasks"]
             rates = {name: float(row["success_rate"]) for name, row in summary.items()}
-        except (OSError, ValueError, KeyError, TypeError) as e:
+        except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"weights from {path}: neither a DAgger dataset nor an evaluation's results JSON with "
                              f"per-task success (summary.tasks.*.success_rate): {e}") from None
     return tasks_lib.failure_weights(rates)
+
+
+def load_eval_results(path: str) -> dict:
+    """An `experiments.evaluate` results file, plain or gzipped (`.json.gz`, as the results
+    committed under experiments/results are); ValueError naming the path when it is not one."""
+    try:
+        raw = Path(path).read_bytes()
+        d = json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
+        d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
+    except (OSError, EOFError, json.JSONDecodeError, KeyError, TypeError) as e:
+        raise ValueError(f"{path}: not an experiments.evaluate result ({type(e).__name__}: {e})") from e
+    return d
 
 
 def positive_int_list(flag_name: str) -> None:

@@ -13,8 +13,6 @@ same number of episodes each (the evaluator's fixed initial states pair them).
 
 from __future__ import annotations
 
-import gzip
-import json
 from pathlib import Path
 
 import numpy as np
@@ -24,17 +22,6 @@ from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the baseline, in points, on any suite.")
-
-
-def load(path: str) -> dict:
-    """An evaluate result file, gzipped (`.json.gz`) or not."""
-    try:
-        raw = Path(path).read_bytes()
-        d = json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
-        d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
-    except (OSError, EOFError, json.JSONDecodeError, KeyError, TypeError) as e:
-        raise ValueError(f"{path}: not an experiments.evaluate result ({type(e).__name__}: {e})") from e
-    return d
 
 
 def label(result: dict) -> str:
@@ -121,7 +108,7 @@ def main(argv):
     if FLAGS.tolerance < 0:
         raise app.UsageError(f"--tolerance must be >= 0 points, got {FLAGS.tolerance}")
     try:
-        base, others = load(argv[1]), [load(p) for p in argv[2:]]
+        base, others = cli.load_eval_results(argv[1]), [cli.load_eval_results(p) for p in argv[2:]]
         rows = [compare(base, o, FLAGS.tolerance) for o in others]
     except ValueError as e:
         raise app.UsageError(str(e)) from e

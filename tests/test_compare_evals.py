@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from experiments import compare_evals
+from experiments import cli, compare_evals
 
 
 def result(method, successes: dict[str, list[bool]], suite_of: dict[str, str], skipped=0.0):
@@ -51,11 +51,11 @@ def test_unpaired_evaluations_and_bad_files_are_refused(tmp_path):
     bad = tmp_path / "x.json"
     bad.write_text(json.dumps({"summary": {}}))
     with pytest.raises(ValueError, match="not an experiments.evaluate result"):
-        compare_evals.load(str(bad))
+        cli.load_eval_results(str(bad))
 
 
 def test_a_gzipped_result_loads_as_the_plain_one(tmp_path):
     plain, packed = tmp_path / "e.json", tmp_path / "e.json.gz"
     plain.write_text(json.dumps(BASE))
     packed.write_bytes(gzip.compress(plain.read_bytes()))
-    assert compare_evals.load(str(packed)) == compare_evals.load(str(plain)) == BASE
+    assert cli.load_eval_results(str(packed)) == cli.load_eval_results(str(plain)) == BASE

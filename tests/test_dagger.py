@@ -197,3 +197,19 @@ def test_failure_weights_from_a_dagger_dataset(tmp_path):
         "left_block_plate:4", "pick_red_block:2"]
     with pytest.raises(ValueError, match="an expert dataset"):
         cli.failure_weights(str(dataset(tmp_path / "demos", "expert", outcomes)))
+
+
+def test_failure_weights_from_an_evaluation_plain_or_gzipped(tmp_path):
+    """An evaluation's results give the same weights whether the file is plain or gzipped (the
+    results committed under experiments/results are .json.gz)."""
+    import gzip
+    import json
+
+    from experiments import cli
+
+    result = {"episodes": {}, "summary": {"tasks": {"left_block_plate": {"success_rate": 0.5},
+                                                    "pick_red_block": {"success_rate": 1.0}}}}
+    plain, packed = tmp_path / "eval.json", tmp_path / "eval.json.gz"
+    plain.write_text(json.dumps(result))
+    packed.write_bytes(gzip.compress(plain.read_bytes()))
+    assert cli.failure_weights(str(packed)) == cli.failure_weights(str(plain)) == ["left_block_plate:4"]
