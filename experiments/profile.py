@@ -26,10 +26,15 @@ host (the call's median wall time less its kernels), with the longest waits and 
 event each waited for (`timing.device_gaps`: a CUDA-graph launch, a `while`-loop condition
 copied to the host, argument handling). --hlo_dir writes the three calls' optimised HLO (gzipped
 text), where those kernels' names (XLA's fusions) can be looked up.
+--device_loops compiles act and every decode part (not the env step) with
+`heisd_jax.xla_options.DEVICE_LOOPS`: on a GPU, the draft rounds' loop and the budget's
+conditionals recorded into command buffers, which process-wide XLA_FLAGS would also impose on
+the physics program.
 """
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
@@ -42,7 +47,7 @@ import numpy as np
 
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import hybrid, results_io, retrieval, spec_decode as sd, target_model, timing, vla
+from heisd_jax import hybrid, results_io, retrieval, spec_decode as sd, target_model, timing, vla, xla_options
 from heisd_jax.harness import methods, vla_policy
 from experiments import cli
 
@@ -56,16 +61,19 @@ flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Trace 3 calls of act and of env_step here and summarise them per kernel.")
 flags.DEFINE_integer("top", 12, "Kernels listed per device timeline with --trace_dir.")
 flags.DEFINE_string("hlo_dir", "", "Write the optimised HLO of act, ar and env_step here (the kernels' names).")
+flags.DEFINE_bool("device_loops", False, "Compile act and every decode part with heisd_jax.xla_options.DEVICE_LOOPS "
+                  "(GPU: loops and conditionals recorded into command buffers, run without a host round trip per "
+                  "iteration); the env step is compiled as always.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
 
-def component_fns(meta: dict, name: str):
-    """Jitted parts of the method's decode step (see the module docstring)."""
+def component_fns(meta: dict, name: str, jit=jax.jit):
+    """Parts of the method's decode step (see the module docstring), each compiled by `jit`."""
     cfg, spec, hcfg = meta["cfg"], meta.get("spec"), meta.get("hcfg")
     tp = (lambda p: p["target"]) if name != "ar" else (lambda p: p)
-    fns = {"ar": jax.jit(lambda p, obs: target_model.ar_decode(tp(p), cfg, obs)[0]),
-           "prefill": jax.jit(lambda p, obs: vla.prefill_features(tp(p), cfg, obs))}
+    fns = {"ar": jit(lambda p, obs: target_model.ar_decode(tp(p), cfg, obs)[0]),
+           "prefill": jit(lambda p, obs: vla.prefill_features(tp(p), cfg, obs))}
     if name == "ar":
         return fns
 
@@ -81,13 +89,13 @@ def component_fns(meta: dict, name: str):
         v = sd.verify(p["target"], cfg, spec, s.cache, s.root, tree, sel)
         return sd.advance(p["target"], p["drafter"], cfg, s, v)
 
-    start = jax.jit(after_prefill)
-    fns.update(start=start, draft_round=jax.jit(draft_round), verify_round=jax.jit(verify_round))
+    start = jit(after_prefill)
+    fns.update(start=start, draft_round=jit(draft_round), verify_round=jit(verify_round))
     if hcfg is not None:
         def with_cand(p, obs, cand):
             return vla.prefill_with_block(p["target"], cfg, obs, *hybrid.candidate_block(cand))
-        fns["prefill+cand"] = jax.jit(with_cand)
-        fns["retrieval"] = jax.jit(lambda p, keys, task: retrieval.query(p["store"], keys, task, hcfg.n_candidates))
+        fns["prefill+cand"] = jit(with_cand)
+        fns["retrieval"] = jit(lambda p, keys, task: retrieval.query(p["store"], keys, task, hcfg.n_candidates))
     return fns
 
 
@@ -110,12 +118,13 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     meta = policy.meta
     hcfg = meta.get("hcfg")
-    fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method)  # HeiSD where no option beats AR
+    jit = functools.partial(jax.jit, compiler_options=xla_options.DEVICE_LOOPS) if FLAGS.device_loops else jax.jit
+    fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method, jit)  # HeiSD where no option beats AR
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params
     pstate = policy.init(params, states)
-    act = jax.jit(policy.act)
+    act = jit(policy.act)
     step = jax.jit(jax.vmap(env.step))
     act_keys = jnp.zeros((FLAGS.batch, 2), jnp.uint32)
     gidx = jnp.asarray(env.global_index, jnp.int32)

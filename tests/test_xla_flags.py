@@ -112,3 +112,21 @@ def test_a_probe_starts_only_the_cpu_backend_and_names_the_unknown_flags(monkeyp
     assert _xla._probe("") == set()
     assert _xla._probe("--xla_no_such_flag_heisd=1 --xla_nor_this_one=2") == {"--xla_no_such_flag_heisd=1",
                                                                              "--xla_nor_this_one=2"}
+
+
+def test_device_loops_is_a_valid_per_program_option():
+    """`xla_options.DEVICE_LOOPS` names command-buffer kinds this jaxlib's XLA knows (a renamed
+    kind fails the compile), and a program compiled with it computes what it computes without."""
+    import jax
+    import jax.numpy as jnp
+
+    from heisd_jax import xla_options
+
+    def rounds(x):  # a while loop and a conditional, as the decode step's rounds and budget
+        x = jax.lax.while_loop(lambda c: c[0] < 3, lambda c: (c[0] + 1, c[1] * 2 + 1), (0, x))[1]
+        return jax.lax.cond(x.sum() > 0, lambda v: v - 1, lambda v: v + 1, x)
+
+    x = jnp.arange(3.0)
+    assert (jax.jit(rounds, compiler_options=xla_options.DEVICE_LOOPS)(x) == jax.jit(rounds)(x)).all()
+    with pytest.raises(Exception, match="not a valid enum value"):  # what a stale kind would raise
+        jax.jit(rounds, compiler_options={"xla_gpu_enable_command_buffer": "NOT_A_KIND"})(x)

@@ -1,0 +1,26 @@
+"""Per-program XLA options for the decode step.
+
+A decode step that runs its draft rounds in a `lax.while_loop` and picks its path with
+`lax.cond` returns to the host at every loop test and every branch on a GPU: the predicate is
+copied back, and the host launches the next piece. XLA can record loops and conditionals
+into the GPU's command buffers (CUDA graphs with conditional nodes) instead, so the whole
+step runs as device-side graph nodes. At a 7B target's costs, called once per control step,
+that took `budget=auto` from 1.41x to 1.64x AR (docs/scale.md), but set process-wide
+(`XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL`) it also slowed the
+simulator's physics program (docs/evaluator.md). `DEVICE_LOOPS` sets it for one program:
+`jax.jit(fn, compiler_options=DEVICE_LOOPS)`.
+
+A per-program option replaces XLA's list of command-buffer kinds rather than adding to it
+(the `+KIND` syntax is XLA_FLAGS' only), so the list is XLA's default kinds (as of the
+XLA in jax 0.10-0.11) and the two loop kinds. The CPU backend ignores it.
+"""
+
+from __future__ import annotations
+
+from types import MappingProxyType
+
+# XLA's default command-buffer kinds (debug_options_flags.cc), then the two that keep loops on the device.
+COMMAND_BUFFER_KINDS = ("FUSION", "CUBLAS", "CUBLASLT", "CUSTOM_CALL", "CUDNN", "DYNAMIC_SLICE_FUSION",
+                        "WHILE", "CONDITIONAL")
+
+DEVICE_LOOPS = MappingProxyType({"xla_gpu_enable_command_buffer": ",".join(COMMAND_BUFFER_KINDS)})
