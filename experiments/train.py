@@ -65,7 +65,9 @@ flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
 flags.DEFINE_integer("devices", 1, "Local devices to train over, data parallel (0: all of them); --batch_size must "
                      "be a multiple.")
 flags.DEFINE_integer("seed", 0, "Fixes the initialisation and the minibatch order: the same seed and data give the "
-                     "same run.")
+                     "same run (on a GPU with --deterministic).")
+flags.DEFINE_bool("deterministic", True, "Compile the training step with deterministic GPU reductions and "
+                  "convolutions (heisd_jax.xla_options.DETERMINISTIC), so a rerun gives the same parameters.")
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
@@ -240,7 +242,8 @@ def main(argv):
                              f"multiple of {n}")
         cfg = training.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
-                                image_shift=FLAGS.image_shift, seed=FLAGS.seed)
+                                image_shift=FLAGS.image_shift, seed=FLAGS.seed,
+                                deterministic=FLAGS.deterministic)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)

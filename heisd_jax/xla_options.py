@@ -1,4 +1,4 @@
-"""Per-program XLA options for the decode step.
+"""Per-program XLA options: device-side loops for the decode step, determinism for training.
 
 A decode step that runs its draft rounds in a `lax.while_loop` and picks its path with
 `lax.cond` returns to the host at every loop test and every branch on a GPU: the predicate is
@@ -24,3 +24,10 @@ COMMAND_BUFFER_KINDS = ("FUSION", "CUBLAS", "CUBLASLT", "CUSTOM_CALL", "CUDNN", 
                         "WHILE", "CONDITIONAL")
 
 DEVICE_LOOPS = MappingProxyType({"xla_gpu_enable_command_buffer": ",".join(COMMAND_BUFFER_KINDS)})
+
+# Run-to-run determinism on a GPU: reductions XLA would do with atomics (the scatter-add of an
+# embedding's gradient) and cuDNN's convolution algorithms (the ViT's patch embedding) become
+# deterministic ones, so one seed and one dataset give the same parameters on every run of one
+# program on one machine (across machines, kernel choices may still differ). Training steps are
+# compiled with it unless `TrainConfig.deterministic` is False. The CPU backend is deterministic anyway.
+DETERMINISTIC = MappingProxyType({"xla_gpu_deterministic_ops": True})

@@ -130,3 +130,20 @@ def test_device_loops_is_a_valid_per_program_option():
     assert (jax.jit(rounds, compiler_options=xla_options.DEVICE_LOOPS)(x) == jax.jit(rounds)(x)).all()
     with pytest.raises(Exception, match="not a valid enum value"):  # what a stale kind would raise
         jax.jit(rounds, compiler_options={"xla_gpu_enable_command_buffer": "NOT_A_KIND"})(x)
+
+
+def test_deterministic_is_a_valid_per_program_option():
+    """`xla_options.DETERMINISTIC` (training steps' default) is an option this jaxlib's XLA knows,
+    and a scatter-add (an embedding's gradient) compiled with it sums what it sums without."""
+    import jax
+    import jax.numpy as jnp
+
+    from heisd_jax import xla_options
+
+    def scatter(x, idx):
+        return x.at[idx].add(1.0)
+
+    x, idx = jnp.zeros(4), jnp.array([0, 0, 3, 1, 0])
+    want = jax.jit(scatter)(x, idx)
+    assert (jax.jit(scatter, compiler_options=xla_options.DETERMINISTIC)(x, idx) == want).all()
+    assert want.tolist() == [3.0, 1.0, 0.0, 1.0]

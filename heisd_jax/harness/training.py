@@ -27,7 +27,7 @@ import optax
 from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
-from heisd_jax import drafter, target_model, vla
+from heisd_jax import drafter, target_model, vla, xla_options
 from heisd_jax.harness import data
 from heisd_jax.tokenizer import ACTION_DIM, ActionTokenizer
 
@@ -43,6 +43,7 @@ class TrainConfig:
     label_sigma_bins: float = 0.0  # ordinal label smoothing (0: one-hot targets, as OpenVLA)
     image_shift: int = 0  # random-shift augmentation of the camera image, pixels
     seed: int = 0
+    deterministic: bool = True  # compile the step with xla_options.DETERMINISTIC (GPU run-to-run determinism)
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1 or self.lr <= 0:
@@ -108,16 +109,17 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
                   "decisive": jnp.mean(jax.nn.softmax(pred.astype(jnp.float32), -1).max(-1) > 0.5, axis=0)}
 
 
-def _data_parallel(step, mesh: Mesh | None, batch_size: int):
-    """`step` jitted; with a mesh, its inputs and outputs replicated over the mesh (the
-    minibatch inside is split by `_split`)."""
+def _data_parallel(step, mesh: Mesh | None, cfg: TrainConfig):
+    """`step` jitted (with `xla_options.DETERMINISTIC` where `cfg.deterministic`); with a mesh,
+    its inputs and outputs replicated over the mesh (the minibatch inside is split by `_split`)."""
+    options = xla_options.DETERMINISTIC if cfg.deterministic else None
     if mesh is None:
-        return jax.jit(step)
-    if batch_size % mesh.size:
-        raise ValueError(f"batch_size {batch_size} is not divisible by the {mesh.size} devices it is split over; "
+        return jax.jit(step, compiler_options=options)
+    if cfg.batch_size % mesh.size:
+        raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {mesh.size} devices it is split over; "
                          f"use a multiple of {mesh.size}")
     whole = NamedSharding(mesh, P())
-    return jax.jit(step, in_shardings=whole, out_shardings=whole)
+    return jax.jit(step, in_shardings=whole, out_shardings=whole, compiler_options=options)
 
 
 def _split(mesh: Mesh | None, batch):
@@ -141,7 +143,7 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
         params = optax.apply_updates(state.params, updates)
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), {"loss": loss, **metrics}
 
-    return _data_parallel(train_step, mesh, cfg.batch_size)
+    return _data_parallel(train_step, mesh, cfg)
 
 
 def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, label_sigma_bins: float = 0.0):
@@ -190,7 +192,7 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
         return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
                           opt_state=opt_state), {"loss": loss, **metrics}
 
-    return _data_parallel(step, mesh, cfg.batch_size)
+    return _data_parallel(step, mesh, cfg)
 
 
 def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
