@@ -70,6 +70,8 @@ flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
+flags.DEFINE_bool("deterministic", True, "Every training stage compiled with deterministic GPU reductions and "
+                  "convolutions (train --deterministic), so that a seed reproduces a stage's parameters.")
 flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
@@ -143,9 +145,10 @@ def plan(w: Path) -> list[Stage]:
     scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
     # Suite weights shape the training data only; the evaluation runs every task's fixed states.
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
+    determinism = [] if FLAGS.deterministic else ["--deterministic=false"]
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
-             f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}"]
+             f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
@@ -194,7 +197,7 @@ def plan(w: Path) -> list[Stage]:
                             rollouts, {"policy_success": r"policy success ([\d.]+%)", **TIME}))
     if "drafter" not in FLAGS.skip:
         stages.append(Stage("drafter", ["train", "--model=drafter", f"--target={final}", f"--demos={','.join(data)}",
-                                        f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}",
+                                        f"--out={w / 'drafter_run'}", f"--steps={FLAGS.drafter_steps}", *determinism,
                                         f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
                                         "--log_every=500", "--ckpt_every=1000", f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}",
                                         f"--export={w / 'drafter'}"],
@@ -239,6 +242,8 @@ def _settings() -> dict:
         out["adapt_weights"] = True
     if FLAGS.param_dtype != "float32":  # likewise
         out["param_dtype"] = FLAGS.param_dtype
+    if not FLAGS.deterministic:  # likewise
+        out["deterministic"] = False
     return out
 
 

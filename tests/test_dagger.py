@@ -117,7 +117,7 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
                         f"--start={start}", "--steps=0", "--rounds=2", "--beta=0.5,0", "--suite_weights=long:2",
                         "--tasks=pick_red_block,left_block_plate", "--label_sigma_bins=1",
-                        "--rollout_episodes=10", "--datastore_source=rollouts", "--adapt_weights"],
+                        "--rollout_episodes=10", "--datastore_source=rollouts", "--adapt_weights", "--nodeterministic"],
                        capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     stages = [line.split(": python -m experiments.", 1) for line in r.stdout.splitlines() if ": python -m " in line]
@@ -140,6 +140,7 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     rounds = {s.split()[0]: cmd for s, cmd in stages}
     assert "--weights_from" not in rounds["dagger1"]  # no earlier round to weigh by
     assert f"--weights_from={tmp_path / 'w' / 'dagger1'}" in rounds["dagger2"]  # the previous round's failures
+    assert all("--deterministic=false" in rounds[s] for s in ("train1", "train2", "drafter"))  # every training stage
 
 
 def test_failure_weights_follow_the_failure_rate():
