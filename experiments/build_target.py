@@ -71,7 +71,8 @@ flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
 flags.DEFINE_bool("deterministic", True, "Every training stage compiled with deterministic GPU reductions and "
-                  "convolutions (train --deterministic), so that a seed reproduces a stage's parameters.")
+                  "convolutions (train --deterministic), so that a seed reproduces a stage's parameters. Not a "
+                  "setting of the build's recipe: a build resumes with either.")
 flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
@@ -242,8 +243,6 @@ def _settings() -> dict:
         out["adapt_weights"] = True
     if FLAGS.param_dtype != "float32":  # likewise
         out["param_dtype"] = FLAGS.param_dtype
-    if not FLAGS.deterministic:  # likewise
-        out["deterministic"] = False
     return out
 
 
