@@ -179,7 +179,7 @@ def failure_weights(path: str) -> list[str]:
         rates = {name: sum(v) / len(v) for name, v in runs.items()}
     else:
         try:
-            summary = load_eval_results(path)["summary"]["tasks"]
+            summary = read_json(path)["summary"]["tasks"]
             rates = {name: float(row["success_rate"]) for name, row in summary.items()}
         except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"weights from {path}: neither a DAgger dataset nor an evaluation's results JSON with "
@@ -187,14 +187,23 @@ def failure_weights(path: str) -> list[str]:
     return tasks_lib.failure_weights(rates)
 
 
-def load_eval_results(path: str) -> dict:
-    """An `experiments.evaluate` results file, plain or gzipped (`.json.gz`, as the results
-    committed under experiments/results are); ValueError naming the path when it is not one."""
+def read_json(path: str) -> dict:
+    """A JSON results file, plain or gzipped (`.json.gz`, as the results committed under
+    experiments/results are); ValueError naming the path when it cannot be read as one."""
     try:
         raw = Path(path).read_bytes()
-        d = json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
+        return json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
+    except (OSError, EOFError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable JSON file ({type(e).__name__}: {e})") from e
+
+
+def load_eval_results(path: str) -> dict:
+    """An `experiments.evaluate` results file (`read_json`) with its per-episode and per-task
+    results; ValueError naming the path when it is not one."""
+    d = read_json(path)
+    try:
         d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
-    except (OSError, EOFError, json.JSONDecodeError, KeyError, TypeError) as e:
+    except (KeyError, TypeError) as e:
         raise ValueError(f"{path}: not an experiments.evaluate result ({type(e).__name__}: {e})") from e
     return d
 
