@@ -4,10 +4,9 @@ A decode step that runs its draft rounds in a `lax.while_loop` and picks its pat
 `lax.cond` returns to the host at every loop test and every branch on a GPU: the predicate is
 copied back, and the host launches the next piece. XLA can record loops and conditionals
 into the GPU's command buffers (CUDA graphs with conditional nodes) instead, so the whole
-step runs as device-side graph nodes. At a 7B target's costs, called once per control step,
-that took `budget=auto` from 1.41x to 1.64x AR (docs/scale.md), but set process-wide
-(`XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL`) it also slowed the
-simulator's physics program (docs/evaluator.md). `DEVICE_LOOPS` sets it for one program:
+step runs as device-side graph nodes (what that saves a host loop: docs/scale.md). Set
+process-wide (`XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL`) it also applies
+to the simulator's physics program, which it slows (docs/evaluator.md). `DEVICE_LOOPS` sets it for one program:
 `jax.jit(fn, compiler_options=DEVICE_LOOPS)`.
 
 A per-program option replaces XLA's list of command-buffer kinds rather than adding to it

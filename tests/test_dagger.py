@@ -1,6 +1,7 @@
 """DAgger collection: the teacher labels the states the policy visits; beta mixes who acts;
 the entry points that collect and build refuse bad settings before they start."""
 
+import gzip
 import json
 import os
 import subprocess
@@ -203,9 +204,6 @@ def test_failure_weights_from_a_dagger_dataset(tmp_path):
 def test_failure_weights_from_an_evaluation_plain_or_gzipped(tmp_path):
     """An evaluation's results give the same weights whether the file is plain or gzipped (the
     results committed under experiments/results are .json.gz)."""
-    import gzip
-    import json
-
     from experiments import cli
 
     result = {"episodes": {}, "summary": {"tasks": {"left_block_plate": {"success_rate": 0.5},

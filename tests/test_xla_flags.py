@@ -113,37 +113,3 @@ def test_a_probe_starts_only_the_cpu_backend_and_names_the_unknown_flags(monkeyp
     assert _xla._probe("--xla_no_such_flag_heisd=1 --xla_nor_this_one=2") == {"--xla_no_such_flag_heisd=1",
                                                                              "--xla_nor_this_one=2"}
 
-
-def test_device_loops_is_a_valid_per_program_option():
-    """`xla_options.DEVICE_LOOPS` names command-buffer kinds this jaxlib's XLA knows (a renamed
-    kind fails the compile), and a program compiled with it computes what it computes without."""
-    import jax
-    import jax.numpy as jnp
-
-    from heisd_jax import xla_options
-
-    def rounds(x):  # a while loop and a conditional, as the decode step's rounds and budget
-        x = jax.lax.while_loop(lambda c: c[0] < 3, lambda c: (c[0] + 1, c[1] * 2 + 1), (0, x))[1]
-        return jax.lax.cond(x.sum() > 0, lambda v: v - 1, lambda v: v + 1, x)
-
-    x = jnp.arange(3.0)
-    assert (jax.jit(rounds, compiler_options=xla_options.DEVICE_LOOPS)(x) == jax.jit(rounds)(x)).all()
-    with pytest.raises(Exception, match="not a valid enum value"):  # what a stale kind would raise
-        jax.jit(rounds, compiler_options={"xla_gpu_enable_command_buffer": "NOT_A_KIND"})(x)
-
-
-def test_deterministic_is_a_valid_per_program_option():
-    """`xla_options.DETERMINISTIC` (training steps' default) is an option this jaxlib's XLA knows,
-    and a scatter-add (an embedding's gradient) compiled with it sums what it sums without."""
-    import jax
-    import jax.numpy as jnp
-
-    from heisd_jax import xla_options
-
-    def scatter(x, idx):
-        return x.at[idx].add(1.0)
-
-    x, idx = jnp.zeros(4), jnp.array([0, 0, 3, 1, 0])
-    want = jax.jit(scatter)(x, idx)
-    assert (jax.jit(scatter, compiler_options=xla_options.DETERMINISTIC)(x, idx) == want).all()
-    assert want.tolist() == [3.0, 1.0, 0.0, 1.0]
