@@ -112,4 +112,3 @@ def test_a_probe_starts_only_the_cpu_backend_and_names_the_unknown_flags(monkeyp
     assert _xla._probe("") == set()
     assert _xla._probe("--xla_no_such_flag_heisd=1 --xla_nor_this_one=2") == {"--xla_no_such_flag_heisd=1",
                                                                              "--xla_nor_this_one=2"}
-
