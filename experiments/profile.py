@@ -26,10 +26,11 @@ host (the call's median wall time less its kernels), with the longest waits and 
 event each waited for (`timing.device_gaps`: a CUDA-graph launch, a `while`-loop condition
 copied to the host, argument handling). --hlo_dir writes the three calls' optimised HLO (gzipped
 text), where those kernels' names (XLA's fusions) can be looked up.
---device_loops compiles act and every decode part (not the env step) with
-`heisd_jax.xla_options.DEVICE_LOOPS`: on a GPU, the draft rounds' loop and the budget's
-conditionals recorded into command buffers, which process-wide XLA_FLAGS would also impose on
-the physics program.
+act and every decode part (not the env step) are compiled with
+`heisd_jax.xla_options.DEVICE_LOOPS`, as the public `heisd_jax.decode_action` is: on a GPU,
+the draft rounds' loop and the budget's conditionals recorded into command buffers, which
+process-wide XLA_FLAGS would also impose on the physics program. --nodevice_loops compiles
+them with XLA's default command buffers (the comparison).
 """
 
 from __future__ import annotations
@@ -61,9 +62,10 @@ flags.DEFINE_integer("steps", 30, "Timed control steps.")
 flags.DEFINE_string("trace_dir", "", "Trace 3 calls of act and of env_step here and summarise them per kernel.")
 flags.DEFINE_integer("top", 12, "Kernels listed per device timeline with --trace_dir.")
 flags.DEFINE_string("hlo_dir", "", "Write the optimised HLO of act, ar and env_step here (the kernels' names).")
-flags.DEFINE_bool("device_loops", False, "Compile act and every decode part with heisd_jax.xla_options.DEVICE_LOOPS "
-                  "(GPU: loops and conditionals recorded into command buffers, run without a host round trip per "
-                  "iteration); the env step is compiled as always.")
+flags.DEFINE_bool("device_loops", True, "Compile act and every decode part with heisd_jax.xla_options.DEVICE_LOOPS, "
+                  "as heisd_jax.decode_action is (GPU: loops and conditionals recorded into command buffers, run "
+                  "without a host round trip per iteration); --nodevice_loops: XLA's default command buffers. The env "
+                  "step is compiled as always.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -224,7 +226,7 @@ def main(argv):
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
-                                                 "median_ms": med, "per_action": per_action,
+                                                 "device_loops": FLAGS.device_loops, "median_ms": med, "per_action": per_action,
                                                  "breakdown_ms": breakdown, "speedup_vs_ar": speedup,
                                                  "control_steps_per_s": loop, "kernels": kernels,
                                                  "device_gaps": gaps})

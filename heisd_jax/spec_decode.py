@@ -29,7 +29,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from heisd_jax import acceptance as rules, drafter, target_model, vla
+from heisd_jax import acceptance as rules, drafter, target_model, vla, xla_options
 from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 
 ACCEPTANCE = rules.TOKEN_RULES
@@ -346,12 +346,21 @@ def decode_action(params, model: target_model.Model, obs: vla.Observation,
     proprio is not finite or whose instruction ids are out of range gets tokens
     `tokenizer.INVALID_ID` (the zero action) and invalid = 1 (`vla.mark_invalid`), the other
     rows are unchanged. model: the target's `vla.VLAConfig`, or any `target_model.TargetModel`.
-    Compiles once per (model, spec, batch shape)."""
+    Compiles once per (model, spec, batch shape), with `xla_options.DEVICE_LOOPS` where it is
+    called at top level: a call from a host loop runs its token loop, draft rounds and branches
+    as device-side graph nodes on a GPU instead of returning to the host at each iteration
+    (docs/scale.md measures what that saves a 7B target called once per control step). Under
+    a caller's own jit it becomes part of the caller's program, compiled as the caller asks."""
     t = target_model.as_target(model)
     vla.check_observation(t.cfg, obs)
     if spec is not None:
         spec.check_fits(t.cfg)
-    return _decode_action_jit(params, obs, t, spec)
+    try:
+        return _decode_action_jit(params, obs, t, spec)
+    except ValueError as e:  # called under the caller's own trace (jit, grad): its program, its options
+        if "top-level" not in str(e):
+            raise
+        return _decode_action_nested(params, obs, t, spec)
 
 
 def _decode_action(params, obs: vla.Observation, model: target_model.Model, spec):
@@ -363,4 +372,6 @@ def _decode_action(params, obs: vla.Observation, model: target_model.Model, spec
     return vla.mark_invalid(t.cfg, obs, tokens, stats)
 
 
-_decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3))
+_decode_action_jit = jax.jit(_decode_action, static_argnums=(2, 3), compiler_options=xla_options.DEVICE_LOOPS)
+# JAX accepts compiler options on a top-level jit only; inside a caller's jit the step is inlined.
+_decode_action_nested = jax.jit(_decode_action, static_argnums=(2, 3))

@@ -106,6 +106,24 @@ def test_value_checks_skip_tracers_and_shape_checks_do_not():
     assert vla.check_observation(CFG, _obs()) == 2
 
 
+def test_decode_action_inside_a_callers_jit_equals_the_top_level_call(tiny_hybrid):
+    """At top level the decode step is compiled with the device-loop options, which JAX takes
+    on a top-level jit only; inside a caller's jit or grad, with the observation an argument or
+    a closed-over constant, the same step becomes part of the caller's program."""
+    params, obs, ar_tokens = tiny_hybrid
+    spec = spec_decode.SpecConfig(top_k=4, depth=3, total_tokens=8)
+    for p, s in ((params["target"], None), (params, spec)):
+        want = heisd_jax.decode_action(p, CFG, obs, spec=s)[0]
+        np.testing.assert_array_equal(want, ar_tokens)
+        as_argument = jax.jit(lambda o, p=p, s=s: heisd_jax.decode_action(p, CFG, o, spec=s)[0])(obs)
+        closed_over = jax.jit(lambda p=p, s=s: heisd_jax.decode_action(p, CFG, obs, spec=s)[0])()
+        np.testing.assert_array_equal(as_argument, want)
+        np.testing.assert_array_equal(closed_over, want)
+    proprio_grad = jax.grad(lambda x: heisd_jax.decode_action(
+        params["target"], CFG, obs.replace(proprio=x))[1]["target_passes"].sum())(obs.proprio)
+    assert proprio_grad.shape == obs.proprio.shape
+
+
 def test_invalid_rows_under_jit_decode_to_the_zero_action_and_are_counted(tiny_hybrid):
     """Under an outer jit the value checks cannot raise: a row with NaN proprio or an
     out-of-vocabulary instruction id gets INVALID_ID tokens (the zero action) and
