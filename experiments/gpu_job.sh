@@ -27,17 +27,18 @@
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
 # returns at once and leaves the job running in its own process session across calls of at
 # most 10 minutes, /tmp/gpu_job/out, which `poll` packs into $OUT/results.tar.part-* (15 MiB
-# parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it), else
-# a build_target work folder's finished stack (build.json, logs, the latest complete vla*,
-# drafter, datastore, eval_ar.json), else everything. JAX's compilation cache persists in
-# /tmp/gpu_job/jax_cache unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
+# parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
+# there yet is named and skipped) and a build_target work folder's finished stack (build.json,
+# logs, the latest complete vla*, drafter, datastore, eval_ar.json); with neither, everything.
+# JAX's compilation cache persists in $GPU_JOB_WORK/jax_cache (GPU_JOB_WORK: /tmp/gpu_job)
+# unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
 set -uo pipefail
 # NVLink multicast stays off (the leased hosts' own setting, kept here for every child): a
 # program that uses it can put a host's shared GPUs out of service.
 export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 SELF=$(realpath "$0")
 cd "$(dirname "$SELF")/.."  # repo root
-WORK=/tmp/gpu_job SITE=/tmp/site
+WORK=${GPU_JOB_WORK:-/tmp/gpu_job} SITE=/tmp/site
 export PYTHONPATH=$SITE PYTHONUNBUFFERED=1 JAX_COMPILATION_CACHE_DIR=${JAX_COMPILATION_CACHE_DIR:-$WORK/jax_cache}
 usage() { echo "usage: $0 [start] [per-gpu] -- CMD [ARGS...] [-- CMD ...] | poll SECONDS [PATH...] | stop [PATH...]" >&2; exit 2; }
 
@@ -68,20 +69,21 @@ run() {  # runs the commands separated by `--` one after another; exits with the
   return $rc
 }
 
-pack() {  # the PATHs given, else a build's finished stack, else everything, into $OUT
-  local d=$WORK/out items=("$@") b v f
-  if [ ${#items[@]} -eq 0 ]; then
-    b=$(cd "$d" && ls -d */build.json */*/build.json 2>/dev/null | head -n 1)  # a build, or one under per-gpu's gpuI
-    if [ -n "$b" ]; then
-      b=${b%/build.json}; items=("$b/build.json" "$b/logs")
-      v=$(cd "$d" && ls -d "$b"/vla[0-9]* 2>/dev/null | sort -V | tail -n 1)
-      [ -n "$v" ] && [ -d "$d/$v/0" ] && items+=("$v")
-      for f in drafter datastore eval_ar.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
-    else
-      items=(.)
-    fi
+pack() {  # the PATHs given and a build's finished stack; with neither, everything; into $OUT
+  local d=$WORK/out items=() b v f p
+  for p in "$@"; do [ -e "$d/$p" ] && items+=("$p") || echo "pack: no $p (yet)"; done
+  b=$(cd "$d" && ls -d */build.json */*/build.json 2>/dev/null | head -n 1)  # a build, or one under per-gpu's gpuI
+  if [ -n "$b" ]; then  # a build's checkpoint always comes back: a lost machine then costs the stages after it only
+    b=${b%/build.json}; items+=("$b/build.json" "$b/logs")
+    v=$(cd "$d" && for x in $(ls -d "$b"/vla[0-9]* 2>/dev/null | sort -rV); do [ -d "$x/0" ] && echo "$x" && break; done)
+    [ -n "$v" ] && items+=("$v")  # the newest complete policy
+    for f in drafter datastore eval_ar.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
+  elif [ $# -eq 0 ]; then
+    items=(.)
   fi
-  (cd "$d" && tar cf - "${items[@]}") | split -b 15M - "$OUT/results.tar.part-"
+  [ ${#items[@]} -eq 0 ] && return 0
+  (cd "$d" && printf '%s\n' "${items[@]}" | awk '!seen[$0]++' | tar cf - --files-from=- --ignore-failed-read) \
+    | split -b 15M - "$OUT/results.tar.part-"
 }
 
 case "${1:-}" in

@@ -1,10 +1,13 @@
-"""experiments/gpu_job.sh's per-gpu mode, with a stand-in `nvidia-smi`: command i runs on GPU i
+"""experiments/gpu_job.sh, with a stand-in `nvidia-smi`: in per-gpu mode command i runs on GPU i
 (its own CUDA_VISIBLE_DEVICES, $OUT folder and compilation cache), all of them before the
-script returns, and more commands than GPUs are refused before any runs."""
+script returns, and more commands than GPUs are refused before any runs; a poll brings back
+the files it names and, always, a build's newest finished policy."""
 
+import io
 import os
 import shutil
 import subprocess
+import tarfile
 from pathlib import Path
 
 import pytest
@@ -49,3 +52,31 @@ def test_per_gpu_command_named_gpus(tmp_path):
     assert r.returncode == 0, r.stderr
     assert (tmp_path / "out" / "gpu0" / "where.txt").read_text().split() == ["0,1"]  # @GPUS given
     assert (tmp_path / "out" / "gpu1" / "where.txt").read_text().split() == ["1"]  # command i on GPU i
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+def test_poll_packs_the_named_files_and_the_builds_newest_finished_policy(tmp_path):
+    work = tmp_path / "work"
+    build = work / "out" / "b"
+    for path in ("logs/train1.log", "vla1/0/params", "vla2/0/params", "vla3/partial"):  # vla3 still being written
+        (build / path).parent.mkdir(parents=True, exist_ok=True)
+        (build / path).write_text(path)
+    (build / "build.json").write_text("{}")
+    (work / "out" / "profile.json").write_text("{}")
+    (work / "out" / "job.log").write_text("== exit 0\n")
+    (work / "pid").write_text("999999999")  # a job that has ended
+    fake = tmp_path / "bin"
+    fake.mkdir()
+    (fake / "nvidia-smi").write_text("#!/bin/sh\n")
+    (fake / "nvidia-smi").chmod(0o755)
+    env = dict(os.environ, PATH=f"{fake}:{os.environ['PATH']}", OUT=str(tmp_path / "back"), GPU_JOB_WORK=str(work))
+    (tmp_path / "back").mkdir()
+    r = subprocess.run(["bash", str(SCRIPT), "poll", "0", "profile.json", "missing.json"], env=env,
+                       capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert "ENDED" in r.stdout and "pack: no missing.json" in r.stdout
+    parts = sorted((tmp_path / "back").glob("results.tar.part-*"))
+    with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts))) as tar:
+        names = {n.rstrip("/") for n in tar.getnames()}
+    assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params"} <= names
+    assert not any(n.startswith(("b/vla1", "b/vla3", "job.log")) for n in names)
