@@ -226,8 +226,9 @@ def main(argv):
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
-                                                 "device_loops": FLAGS.device_loops, "median_ms": med, "per_action": per_action,
-                                                 "breakdown_ms": breakdown, "speedup_vs_ar": speedup,
+                                                 "device_loops": FLAGS.device_loops, "median_ms": med,
+                                                 "per_action": per_action, "breakdown_ms": breakdown,
+                                                 "speedup_vs_ar": speedup,
                                                  "control_steps_per_s": loop, "kernels": kernels,
                                                  "device_gaps": gaps})
 
