@@ -24,6 +24,8 @@ action (TPA), tokens per target pass (AL), the mode shares, and how often the me
 action equals the recorded AR action (lossless methods: 1.0) with the mean bin distance.
 The replay is open loop: the observations are the recording method's, so a method's own
 drift (and its success rate) is not captured: see experiments.sweep for that.
+--device_loops compiles every replay with `heisd_jax.xla_options.DEVICE_LOOPS` (what the
+public decode call and experiments.profile compile a host loop's decode step with).
 """
 
 from __future__ import annotations
@@ -43,7 +45,7 @@ import numpy as np
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax.timing import median_seconds, wall_seconds
-from heisd_jax import checkpoint, results_io, retrieval, scale, vla
+from heisd_jax import checkpoint, results_io, retrieval, scale, vla, xla_options
 from heisd_jax.harness import methods, replay, vla_policy
 from experiments import cli
 
@@ -66,6 +68,9 @@ flags.DEFINE_enum("target_scale", None, list(scale.SCALE_NAMES), "Every timed me
 flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "Every timed method (and the ceiling) in this dtype, unless its "
                   "--methods settings name one.")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
+flags.DEFINE_bool("device_loops", False, "Compile every replay (AR's, the ceiling's and each method's) with "
+                  "heisd_jax.xla_options.DEVICE_LOOPS: on a GPU the replay's step loop, the draft rounds and the "
+                  "budget's branches run as device-side graph nodes (the replay holds no physics).")
 flags.DEFINE_string("out", "", "JSON output path.")
 flags.DEFINE_string("plot", "", "PNG: speedup over AR vs batch size per method, with the ceiling (needs matplotlib).")
 flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --out JSON files (e.g. two runs of "
@@ -116,7 +121,7 @@ def plot(rows, path):
     print(f"plot: {path}")
 
 
-def replay_fn(policy):
+def replay_fn(policy, compiler_options=None):
     def run(params, states):
         first = jax.tree.map(lambda x: x[0], states)
         pstate = policy.init(params, first)
@@ -130,7 +135,7 @@ def replay_fn(policy):
             actions, pstate, stats = policy.act(params, s, pstate, keys)
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]
-    return jax.jit(run)
+    return jax.jit(run, compiler_options=compiler_options)
 
 
 def main(argv):
@@ -187,12 +192,17 @@ def main(argv):
             if name == "prefill":
                 policy = prefill
             else:
-                policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                             datastore=FLAGS.datastore, batch_size=b,
-                                             **cli.cost_kwargs(), **settings)
+                try:
+                    policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                                 datastore=FLAGS.datastore, batch_size=b,
+                                                 **cli.cost_kwargs(), **settings)
+                except (ValueError, FileNotFoundError) as e:  # e.g. budget=auto without a cost table for b
+                    if FLAGS.out and rows:
+                        write(rows, query_ms)  # what was measured stays
+                    raise app.UsageError(f"{name} at batch {b}: {e}") from e
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
-            fn = replay_fn(policy)
+            fn = replay_fn(policy, xla_options.DEVICE_LOOPS if FLAGS.device_loops else None)
             # ms per batched action, per repetition
             rep_ms = 1e3 * np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)) / t_idx.shape[0]
             actions, stats = jax.device_get(fn(policy.params, sub))
@@ -238,7 +248,7 @@ def main(argv):
 def write(rows, query_ms):
     results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "steps": FLAGS.steps,
                                              "record_method": FLAGS.record_method, "suites": FLAGS.suites,
-                                             "query_ms": query_ms, "rows": rows})
+                                             "device_loops": FLAGS.device_loops, "query_ms": query_ms, "rows": rows})
 
 
 if __name__ == "__main__":
