@@ -239,6 +239,31 @@ def define_cost_flags() -> None:
                       "model, settings and batch size, measure it now (about a minute for the shipped target, several for a 7B expansion; then cached) instead of failing.")
 
 
+def check_cost_tables(method_list: list[tuple[str, dict]], batch_sizes, checkpoint=None, datastore=None) -> None:
+    """`app.UsageError` naming every method and batch size (rows per device) whose budget=auto
+    would find no decode-cost table in --cost_cache (`methods.missing_cost_tables`): called
+    before anything runs, unless --calibrate_costs measures them."""
+    from heisd_jax.harness import methods  # noqa: PLC0415
+
+    f = flags.FLAGS
+    if f.calibrate_costs:
+        return
+    try:
+        missing = {f"{n}:{','.join(f'{k}={v}' for k, v in s.items())}".rstrip(":"):
+                   methods.missing_cost_tables(n, batch_sizes, checkpoint=checkpoint, datastore=datastore,
+                                               cost_cache=cost_kwargs()["cost_cache"], **s)
+                   for n, s in method_list}
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
+    missing = {k: v for k, v in missing.items() if v}
+    if missing:
+        where = f.cost_cache or "(no --cost_cache)"
+        raise app.UsageError(
+            f"budget=auto needs a decode-cost table per device, model, settings and batch size, and {where} has none "
+            f"for {'; '.join(f'{k} at batch {v}' for k, v in missing.items())}: add --calibrate_costs to measure them "
+            f"first (cached for later runs), pass the --cost_cache that holds them, or use budget=fixed")
+
+
 def cost_kwargs() -> dict:
     """`methods.make_policy`'s cost-table arguments from the flags `define_cost_flags` made."""
     return {"cost_cache": flags.FLAGS.cost_cache or None, "calibrate_costs": flags.FLAGS.calibrate_costs}

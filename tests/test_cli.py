@@ -33,6 +33,8 @@ CASES = [
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
     ("evaluate", ["--method=expert", "--target_scale=llama-1b"], "--method=expert takes none of --target_scale"),
     ("bench_methods", ["--target_scale=huge"], "<shipped|llama2-7b|llama-1b>"),
+    ("bench_methods", ["--methods=ar;heisd:budget=fixed;heisd", "--batch_sizes=1", "--record_envs=1",
+                       "--cost_cache=/nonexistent/costs"], "has none for heisd at batch [1]: add --calibrate_costs"),
     ("bench_scale", ["--target_scale=llama3"], "<shipped|llama2-7b|llama-1b>"),
     ("scale_check", ["--dtypes=float16"], "--dtypes: unknown ['float16']; valid: float32, bfloat16"),
 ]

@@ -358,6 +358,44 @@ def test_heisd_decodes_as_plain_ar_where_no_draft_option_can_beat_it(monkeypatch
         budget.BudgetConfig(mode="auto", max_batch=0)
 
 
+def test_missing_cost_tables_are_the_ones_make_policy_would_miss(monkeypatch, tmp_path):
+    """`methods.missing_cost_tables` (configs and files only: what an entry point checks before
+    it runs anything) names exactly the batch sizes at which `make_policy` without
+    calibrate_costs raises MissingCostTable: budget=auto at batch 1 with an empty cache; none
+    at a fixed budget, above budget_max_batch, for AR, or once the table is cached (here by
+    make_policy's own calibrate path, only the measurement faked); bf16 is another table."""
+    from envs import tasks
+    from envs.env import TabletopEnv
+    from heisd_jax import budget, cost_model
+    from heisd_jax.harness import methods
+
+    env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
+
+    def builds(batch, **given):
+        try:
+            methods.make_policy("heisd", env, batch_size=batch, cost_cache=tmp_path, log=lambda _: None, **given)
+        except cost_model.MissingCostTable:
+            return False
+        return True
+
+    def missing(sizes, name="heisd", **given):
+        return methods.missing_cost_tables(name, sizes, cost_cache=tmp_path, **given)
+
+    assert missing([1, 2]) == [1] and not builds(1) and builds(2)
+    assert missing([1], budget="fixed") == [] and missing([1], name="ar") == []
+
+    def fake(params, cfg, hcfg, batch, reps=5):
+        names = [o.name for o in budget.options(hcfg.budget, hcfg.mode)]
+        n = len(names)
+        return cost_model.CostTable(key=cost_model.table_key(cfg, hcfg, batch), options=names, fixed_ms=[1.0] * n,
+                                    round_ms=[0.5] * n, decode_ms=[1.0] * n, decode_rounds=[0.0] * n,
+                                    pieces={"prefill_ms": {"0": 1.0}}, seconds=0.0)
+    monkeypatch.setattr(cost_model, "calibrate", fake)
+    methods.make_policy("heisd", env, batch_size=1, cost_cache=tmp_path, calibrate_costs=True, log=lambda _: None)
+    assert missing([1]) == [] and builds(1)
+    assert missing([1], dtype="bfloat16") == [1] and not builds(1, dtype="bfloat16")
+
+
 def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
     """`boundary.measure` (the calibration's and the datastore study's decode) with the keys
     passed in gives what it gives computing them from the action history, and queries with

@@ -94,17 +94,24 @@ def in_numerics(cfg: vla.VLAConfig, numerics: Numerics, target, drafter=None):
     """The target (and its drafter) at a method's numerics: expanded to `target_scale`
     (`heisd_jax.scale`), in their dtype (by default the target's own, `stored_dtype`) and
     matmul precision, the inference passes unrolled or not. Returns (cfg, target params[,
-    drafter params])."""
+    drafter params]); the cfg is `numerics_config`'s."""
     dtype = numerics.dtype or stored_dtype(target, cfg.dtype)
-    big = scale.scaled_config(cfg, numerics.target_scale)  # refuses a scale smaller than the target first
-    if big is not cfg:
+    out_cfg = numerics_config(cfg, numerics, dtype)  # refuses a scale smaller than the target first
+    if scale.scaled_config(cfg, numerics.target_scale) is not cfg:
         scale.check_fits(cfg, numerics.target_scale, dtype)
         dparams = None if drafter is None else scale.expand_drafter(drafter, cfg, numerics.target_scale, dtype)
-        target, cfg = scale.expand_target(target, cfg, numerics.target_scale, dtype)
+        target, _ = scale.expand_target(target, cfg, numerics.target_scale, dtype)
         drafter = dparams
-    cfg, *params = in_dtype(cfg, dtype, *(p for p in (target, drafter) if p is not None),
-                            matmul_precision=numerics.matmul_precision)
-    return (dataclasses.replace(cfg, unroll=numerics.unroll), *params)
+    _, *params = in_dtype(cfg, dtype, *(p for p in (target, drafter) if p is not None))
+    return (out_cfg, *params)
+
+
+def numerics_config(cfg: vla.VLAConfig, numerics: Numerics, dtype: str) -> vla.VLAConfig:
+    """The model config of the target `cfg` at `numerics` in compute dtype `dtype` (what
+    `in_numerics` returns), without making any parameters: what a decode-cost table is keyed by."""
+    big = scale.scaled_config(cfg, numerics.target_scale)
+    return dataclasses.replace(big, dtype=dtype, matmul_precision=numerics.matmul_precision or big.matmul_precision,
+                               unroll=numerics.unroll)
 
 
 def _show_trees(trees: tuple[tuple[int, int, int], ...]) -> str:
@@ -534,10 +541,45 @@ def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = 
     draft budget."""
     method = get(name)
     given = check_settings(name, settings)
-    paths = {"checkpoint": checkpoint, "drafter": drafter, "datastore": datastore}
-    paths = {k: Path(paths[k] if paths[k] is not None else DEFAULT_PATHS[k]) for k in method.loads}
+    paths = _paths(method, checkpoint=checkpoint, drafter=drafter, datastore=datastore)
     return method.build(env, paths, given, batch_size=batch_size, cost_cache=cost_cache,
                         calibrate_costs=calibrate_costs, log=log)
+
+
+def _paths(method: Method, **given: str | Path | None) -> dict[str, Path]:
+    """The files `method` loads: those given, else the shipped ones."""
+    return {k: Path(given[k] if given.get(k) is not None else DEFAULT_PATHS[k]) for k in method.loads}
+
+
+def missing_cost_tables(name: str, batch_sizes, *, checkpoint: str | Path | None = None,
+                        datastore: str | Path | None = None,
+                        cost_cache: str | Path | None = cost_model.DEFAULT_CACHE, **settings) -> list[int]:
+    """The batch sizes (rows per device) at which `make_policy(name, ..., batch_size=b,
+    calibrate_costs=False)` would find no decode-cost table in `cost_cache` and raise
+    `cost_model.MissingCostTable`: the method drafts there under budget=auto and the table of
+    its device, model (at its numerics: `numerics_config`), settings and b is not cached. Read
+    from configs and files alone (no parameters expanded, nothing compiled), so an entry point
+    that runs something long before building its policies can refuse first."""
+    method = get(name)
+    given = check_settings(name, settings)
+    if not method.budget:
+        return []
+    return _missing_cost_tables(name, _paths(method, checkpoint=checkpoint, datastore=datastore), given,
+                                batch_sizes, cost_cache)
+
+
+def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
+    try:
+        store_meta = json.loads((paths["datastore"] / "meta.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"no readable datastore at {paths['datastore']}: {e}") from e
+    run = _config(name, given, load_calibration(paths["datastore"], store_meta))
+    drafting = [b for b in batch_sizes if run.decode.budget.mode == "auto" and run.decode.budget.drafts_at(b)]
+    if not drafting:
+        return []
+    params, cfg, _, _ = checkpoint.load_policy(paths["checkpoint"], text_vocab=language.VOCAB)
+    cfg = numerics_config(cfg, run.numerics, run.numerics.dtype or stored_dtype(params, cfg.dtype))
+    return [b for b in drafting if cost_model.load_cached(cfg, run.decode, b, cost_cache, log=lambda _: None) is None]
 
 
 def _value(v: str):
