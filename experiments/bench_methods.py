@@ -197,7 +197,7 @@ def main(argv):
                     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                                  datastore=FLAGS.datastore, batch_size=b,
                                                  **cli.cost_kwargs(), **settings)
-                except (ValueError, FileNotFoundError) as e:  # e.g. budget=auto without a cost table for b
+                except (ValueError, FileNotFoundError) as e:
                     if FLAGS.out and rows:
                         write(rows, query_ms)  # what was measured stays
                     raise app.UsageError(f"{name} at batch {b}: {e}") from e
@@ -215,7 +215,7 @@ def main(argv):
             if base is None:  # AR, timed first
                 base, base_reps = ms, rep_ms
             ratios = base_reps / rep_ms
-            label = name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
+            label = cli.method_label(name, settings)
             row = {"method": name, "settings": settings, "label": label, "batch": b, "ms_per_action": ms,
                    "ms_reps": rep_ms.tolist(), "speedup_vs_ar": base / ms,
                    "speedup_spread": [float(ratios.min()), float(ratios.max())],

@@ -239,6 +239,11 @@ def define_cost_flags() -> None:
                       "model, settings and batch size, measure it now (about a minute for the shipped target, several for a 7B expansion; then cached) instead of failing.")
 
 
+def method_label(name: str, settings: dict) -> str:
+    """NAME or NAME:key=value,... (the settings in the order given), as --methods spells a method."""
+    return name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
+
+
 def check_cost_tables(method_list: list[tuple[str, dict]], batch_sizes, checkpoint=None, datastore=None) -> None:
     """`app.UsageError` naming every method and batch size (rows per device) whose budget=auto
     would find no decode-cost table in --cost_cache (`methods.missing_cost_tables`): called
@@ -249,9 +254,9 @@ def check_cost_tables(method_list: list[tuple[str, dict]], batch_sizes, checkpoi
     if f.calibrate_costs:
         return
     try:
-        missing = {f"{n}:{','.join(f'{k}={v}' for k, v in s.items())}".rstrip(":"):
-                   methods.missing_cost_tables(n, batch_sizes, checkpoint=checkpoint, datastore=datastore,
-                                               cost_cache=cost_kwargs()["cost_cache"], **s)
+        missing = {method_label(n, s): methods.missing_cost_tables(n, batch_sizes, checkpoint=checkpoint,
+                                                                      datastore=datastore,
+                                                                      cost_cache=cost_kwargs()["cost_cache"], **s)
                    for n, s in method_list}
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e

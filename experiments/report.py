@@ -21,8 +21,7 @@ flags.DEFINE_string("plots", "", "Directory for PNG plots (needs matplotlib: pip
 
 
 def method_label(cell: dict) -> str:
-    s = cell["settings"]
-    return cell["method"] + (":" + ",".join(f"{k}={v}" for k, v in sorted(s.items())) if s else "")
+    return cli.method_label(cell["method"], dict(sorted(cell["settings"].items())))
 
 
 def summarize(records: list[dict]) -> list[dict]:

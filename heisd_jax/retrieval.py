@@ -83,13 +83,18 @@ def query(store: Datastore, keys: jnp.ndarray, task: jnp.ndarray, n: int, max_di
     return store.tokens[idx], dist, jnp.isfinite(dist) & (dist <= max_dist)
 
 
+def read_meta(path: str | os.PathLike) -> dict:
+    """A datastore's meta.json (its build settings, tokenizer, metric scales), without its arrays."""
+    try:
+        return json.loads((Path(path) / "meta.json").read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"no readable datastore at {path}: {e}") from e
+
+
 def load(path: str | os.PathLike, tok: ActionTokenizer, target_fingerprint: str) -> tuple[Datastore, KeySpec, dict]:
     """(datastore, key spec, meta); refuses one built for another tokenizer or target."""
     path = Path(path)
-    try:
-        meta = json.loads((path / "meta.json").read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"no readable datastore at {path}: {e}") from e
+    meta = read_meta(path)
     if meta.get("format") != FORMAT:
         raise ValueError(f"{path}: format {meta.get('format')}, expected {FORMAT}")
     try:

@@ -569,11 +569,7 @@ def missing_cost_tables(name: str, batch_sizes, *, checkpoint: str | Path | None
 
 
 def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
-    try:
-        store_meta = json.loads((paths["datastore"] / "meta.json").read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"no readable datastore at {paths['datastore']}: {e}") from e
-    run = _config(name, given, load_calibration(paths["datastore"], store_meta))
+    run = _config(name, given, load_calibration(paths["datastore"], retrieval.read_meta(paths["datastore"])))
     drafting = [b for b in batch_sizes if run.decode.budget.mode == "auto" and run.decode.budget.drafts_at(b)]
     if not drafting:
         return []
