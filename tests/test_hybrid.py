@@ -363,11 +363,11 @@ def test_missing_cost_tables_are_the_ones_make_policy_would_miss(monkeypatch, tm
     it runs anything) names exactly the batch sizes at which `make_policy` without
     calibrate_costs raises MissingCostTable: budget=auto at batch 1 with an empty cache; none
     at a fixed budget, above budget_max_batch, for AR, or once the table is cached (here by
-    make_policy's own calibrate path, only the measurement faked); bf16 is another table."""
+    make_policy's own calibrate path, only the measurement faked); the other dtype is another table."""
     from envs import tasks
     from envs.env import TabletopEnv
-    from heisd_jax import budget, cost_model
-    from heisd_jax.harness import methods
+    from heisd_jax import budget, checkpoint, cost_model
+    from heisd_jax.harness import methods, vla_policy
 
     env = TabletopEnv(tasks.get_tasks("goal"), methods.env_config("heisd"))
 
@@ -393,7 +393,9 @@ def test_missing_cost_tables_are_the_ones_make_policy_would_miss(monkeypatch, tm
     monkeypatch.setattr(cost_model, "calibrate", fake)
     methods.make_policy("heisd", env, batch_size=1, cost_cache=tmp_path, calibrate_costs=True, log=lambda _: None)
     assert missing([1]) == [] and builds(1)
-    assert missing([1], dtype="bfloat16") == [1] and not builds(1, dtype="bfloat16")
+    params, _, _, _ = checkpoint.load_policy(vla_policy.DEFAULT_CHECKPOINT)
+    other = {"float32": "bfloat16", "bfloat16": "float32"}[methods.stored_dtype(params)]
+    assert missing([1], dtype=other) == [1] and not builds(1, dtype=other)
 
 
 def test_measure_with_given_keys_equals_measure_with_its_own(tiny_hybrid):
