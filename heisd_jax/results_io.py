@@ -76,18 +76,26 @@ class SweepFile:
     record per finished cell ({"cell": {...}, ...}). Appends are flushed and fsynced line by
     line, so a crash can at worst leave one partial trailing line; opening the file detects
     it and cuts it off (that cell is redone), while damage anywhere else, or a header of
-    other settings, is refused rather than overwritten."""
+    other settings, is refused rather than overwritten. A new file is written with its first
+    record (header and record at once), so a sweep refused or stopped before any cell ends
+    leaves no file; its folder is made, and checked writable, when the file is opened."""
 
     def __init__(self, path: str | os.PathLike, sweep: dict):
         self.path = Path(path)
         self.sweep = sweep
         self.records: list[dict] = []
         self.repaired = False
+        if self.path.is_dir():
+            raise ValueError(f"{self.path} is a folder, not a results file; choose another --out")
         if self.path.exists() and self.path.stat().st_size:
             self._load()
         else:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            write_json_lines_atomic(self.path, [{"format": SWEEP_FORMAT, "sweep": sweep}])
+            try:
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+            except OSError as e:
+                raise ValueError(f"{self.path}: cannot make its folder ({e}); choose another --out") from e
+            if not os.access(self.path.parent, os.W_OK):
+                raise ValueError(f"{self.path}: its folder is not writable; choose another --out")
 
     def _load(self):
         raw = self.path.read_bytes()
@@ -119,6 +127,10 @@ class SweepFile:
     def append(self, record: dict) -> None:
         if cell_key(record["cell"]) in self.done():
             raise ValueError(f"cell already recorded: {record['cell']}")
+        if not (self.path.exists() and self.path.stat().st_size):
+            write_json_lines_atomic(self.path, [{"format": SWEEP_FORMAT, "sweep": self.sweep}, record])
+            self.records.append(record)
+            return
         with open(self.path, "a") as f:
             f.write(json.dumps(record) + "\n")
             f.flush()

@@ -61,6 +61,17 @@ def test_bad_flag_writes_nothing(tmp_path):
     assert out.read_text() == "{}"
 
 
+def test_sweep_refuses_a_missing_cost_table_before_writing_anything(tmp_path):
+    out = tmp_path / "sweep.jsonl"
+    r = subprocess.run([sys.executable, "-m", "experiments.sweep", "--methods=heisd", "--suites=goal",
+                        "--tasks=red_block_plate", "--episodes=1", "--num_envs=1", f"--cost_cache={tmp_path / 'costs'}",
+                        f"--out={out}"], capture_output=True, text=True, timeout=300)
+    lines = [line for line in r.stderr.splitlines() if line.strip()]
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert "budget=auto needs a decode-cost table" in lines[0] and "heisd at batch [1]" in lines[0]
+    assert not out.exists()
+
+
 def test_method_flags_are_the_settings_fields():
     from absl import app, flags
 

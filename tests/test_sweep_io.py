@@ -28,6 +28,17 @@ def test_resume_keeps_every_cell_once(tmp_path):
     assert settings == SWEEP and [r["cell"]["method"] for r in recs] == ["ar", "ar", "drafter"]
 
 
+def test_a_sweep_without_a_finished_cell_leaves_no_file(tmp_path):
+    p = tmp_path / "new" / "s.jsonl"
+    f = results_io.SweepFile(p, SWEEP)  # opened (a refused or interrupted sweep stops here)
+    assert not p.exists() and f.done() == set()
+    f.append(_rec("ar", "goal"))
+    settings, recs = results_io.read_sweep(p)
+    assert settings == SWEEP and [r["cell"]["suite"] for r in recs] == ["goal"]
+    with pytest.raises(ValueError, match="is a folder, not a results file"):
+        results_io.SweepFile(tmp_path / "new", SWEEP)  # a folder
+
+
 def test_partial_trailing_line_is_cut_and_redone(tmp_path):
     p = tmp_path / "s.jsonl"
     f = results_io.SweepFile(p, SWEEP)
