@@ -152,10 +152,18 @@ def check_vocabulary(path: str | Path, meta: dict, text_vocab: Sequence[str]) ->
 
 
 def _config(path: Path, meta: dict) -> vla.VLAConfig:
+    """The checkpoint's model config, computing in the dtype its parameters are stored in: a
+    policy stored in bfloat16 runs in bfloat16 (its own precision, the one its evaluation
+    measured) wherever it is loaded, not in float32 over bf16-rounded weights."""
     try:
-        return vla.VLAConfig(**meta["config"])
+        cfg = vla.VLAConfig(**meta["config"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: bad config metadata: {e}") from e
+    dtype = meta.get("param_dtype", "float32")
+    if dtype not in PARAM_DTYPES:
+        raise CheckpointError(f"checkpoint {path}: parameters stored as {dtype!r}; this version reads "
+                              f"{', '.join(PARAM_DTYPES)}")
+    return dataclasses.replace(cfg, dtype=dtype)
 
 
 def read_config(path: str | Path) -> vla.VLAConfig:
@@ -165,7 +173,8 @@ def read_config(path: str | Path) -> vla.VLAConfig:
 
 
 def load_policy(path: str | Path, text_vocab: Sequence[str] | None = None):
-    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory. With
+    """(params, VLAConfig, ActionTokenizer, meta) from a policy checkpoint directory, the config
+    computing in the parameters' stored dtype (`_config`). With
     `text_vocab` (the instruction words by id the caller's instructions use), a checkpoint
     trained on another vocabulary is refused (`check_vocabulary`)."""
     path = Path(path)
@@ -179,11 +188,7 @@ def load_policy(path: str | Path, text_vocab: Sequence[str] | None = None):
         tok = ActionTokenizer.from_dict(meta["tokenizer"])
     except (KeyError, TypeError, ValueError) as e:
         raise CheckpointError(f"checkpoint {path}: bad tokenizer metadata: {e}") from e
-    if meta.get("param_dtype", "float32") not in PARAM_DTYPES:
-        raise CheckpointError(f"checkpoint {path}: parameters stored as {meta['param_dtype']!r}; this version reads "
-                              f"{', '.join(PARAM_DTYPES)}")
-    abstract = jax.eval_shape(lambda: as_param_dtype(vla.init_params(cfg, jax.random.PRNGKey(0)),
-                                                     meta.get("param_dtype", "float32")))
+    abstract = jax.eval_shape(lambda: as_param_dtype(vla.init_params(cfg, jax.random.PRNGKey(0)), cfg.dtype))
     return _restore_params(path, mngr, step, abstract, meta), cfg, tok, meta
 
 
@@ -212,7 +217,7 @@ def load_drafter(path: str | Path, target_cfg: vla.VLAConfig, target_params):
     if meta.get("kind") != "drafter":
         raise CheckpointError(f"checkpoint {path} holds a {meta.get('kind')!r}, not a drafter")
     try:
-        same_cfg = vla.VLAConfig(**meta.get("config", {})) == target_cfg
+        same_cfg = vla.VLAConfig(**meta.get("config", {})).architecture() == target_cfg.architecture()
     except (TypeError, ValueError):
         same_cfg = False
     if not same_cfg:

@@ -68,8 +68,7 @@ def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: in
 
 def table_key(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict:
     dev = jax.devices()[0]
-    numerics = ("dtype", "matmul_precision", "unroll")
-    model = {k: v for k, v in dataclasses.asdict(cfg).items() if k not in numerics}
+    model = cfg.architecture()
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll,
             "batch": int(batch),

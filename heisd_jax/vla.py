@@ -46,6 +46,9 @@ NEG_INF = -1e9
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
+NUMERICS = ("dtype", "matmul_precision", "unroll")  # VLAConfig's fields that set how, not what, it computes
+
+
 @dataclasses.dataclass(frozen=True)
 class VLAConfig:
     image_size: int = 64  # of each (square) view
@@ -79,6 +82,12 @@ class VLAConfig:
     # arrays under a scan ("blocks"): a large model's passes then read each weight in place
     # (slicing a layer out of stacked arrays makes XLA copy it: ~2x a 7B pass).
     per_layer: bool = False
+
+    def architecture(self) -> dict:
+        """The fields that fix the function and the parameters' shapes: all but the numerics
+        (`NUMERICS`), which a caller may change for one run (a drafter trained for a target
+        serves it at any of them)."""
+        return {k: v for k, v in dataclasses.asdict(self).items() if k not in NUMERICS}
 
     @property
     def n_patches(self) -> int:

@@ -114,7 +114,13 @@ def test_bfloat16_round_trip_halves_the_file_and_decodes(saved, tmp_path):
     path = tmp_path / "vla_bf16"
     checkpoint.save_policy(path, params, CFG, tok, text_vocab=VOCAB, param_dtype="bfloat16")
     p2, cfg2, _, meta = checkpoint.load_policy(path, text_vocab=VOCAB)
-    assert cfg2 == CFG and meta["param_dtype"] == "bfloat16"
+    # It computes in the precision it is stored in (a float32 checkpoint's config is unchanged).
+    assert cfg2 == dataclasses.replace(CFG, dtype="bfloat16") and meta["param_dtype"] == "bfloat16"
+    assert checkpoint.read_config(path) == cfg2 and checkpoint.load_policy(saved[0])[1] == CFG
+    # A drafter serves its target at any numerics, not at another architecture.
+    checkpoint.load_drafter(saved[1], dataclasses.replace(CFG, dtype="bfloat16", unroll=True), params)
+    with pytest.raises(checkpoint.CheckpointError, match="target of another config"):
+        checkpoint.load_drafter(saved[1], dataclasses.replace(CFG, n_layers=CFG.n_layers + 1), params)
     for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(p2)):
         assert b.dtype == jnp.bfloat16
         np.testing.assert_array_equal(np.asarray(a.astype(jnp.bfloat16)), np.asarray(b))
