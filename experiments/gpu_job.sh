@@ -26,7 +26,8 @@
 # Each command's output is teed to job.log in the folder that comes back, which a command
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
 # returns at once and leaves the job running in its own process session across calls of at
-# most 10 minutes, /tmp/gpu_job/out, which `poll` packs into $OUT/results.tar.part-* (15 MiB
+# most 10 minutes, /tmp/gpu_job/out (emptied by each `start`: unpack what `poll` brought back
+# first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results.tar.part-* (15 MiB
 # parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
 # there yet is named and skipped) and a build_target work folder's finished stack (build.json,
 # logs, the latest complete vla*, drafter, datastore, eval_ar.json); with neither, everything.
