@@ -393,8 +393,7 @@ def test_missing_cost_tables_are_the_ones_make_policy_would_miss(monkeypatch, tm
     monkeypatch.setattr(cost_model, "calibrate", fake)
     methods.make_policy("heisd", env, batch_size=1, cost_cache=tmp_path, calibrate_costs=True, log=lambda _: None)
     assert missing([1]) == [] and builds(1)
-    params, _, _, _ = checkpoint.load_policy(vla_policy.DEFAULT_CHECKPOINT)
-    other = {"float32": "bfloat16", "bfloat16": "float32"}[methods.stored_dtype(params)]
+    other = {"float32": "bfloat16", "bfloat16": "float32"}[checkpoint.read_config(vla_policy.DEFAULT_CHECKPOINT).dtype]
     assert missing([1], dtype=other) == [1] and not builds(1, dtype=other)
 
 

@@ -573,8 +573,8 @@ def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_s
     drafting = [b for b in batch_sizes if run.decode.budget.mode == "auto" and run.decode.budget.drafts_at(b)]
     if not drafting:
         return []
-    params, cfg, _, _ = checkpoint.load_policy(paths["checkpoint"], text_vocab=language.VOCAB)
-    cfg = numerics_config(cfg, run.numerics, run.numerics.dtype or stored_dtype(params, cfg.dtype))
+    _, cfg, _, _ = checkpoint.load_policy(paths["checkpoint"], text_vocab=language.VOCAB)  # cfg.dtype: as stored
+    cfg = numerics_config(cfg, run.numerics, run.numerics.dtype or cfg.dtype)
     return [b for b in drafting if cost_model.load_cached(cfg, run.decode, b, cost_cache, log=lambda _: None) is None]
 
 
