@@ -12,7 +12,6 @@ Records greedy-AR rollouts of the target (--envs envs on the fixed evaluation in
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -38,6 +37,7 @@ flags.DEFINE_integer("envs", 40, "Envs recorded in parallel (the batch AR is com
 flags.DEFINE_integer("steps", 60, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 200, "States replayed at batch 1 (spread over the recording).")
 flags.DEFINE_string("out", "results/target_confidence.json", "Results JSON.")
+flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "The target's " + methods.settings("ar")["dtype"].help)
 flags.DEFINE_enum("matmul_precision", vla.VLAConfig.matmul_precision, list(vla.MATMUL_PRECISIONS),
                   "The target's " + methods.settings("ar")["matmul_precision"].help)
 
@@ -54,7 +54,7 @@ def main(argv):
         params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
-    cfg = dataclasses.replace(cfg, matmul_precision=FLAGS.matmul_precision)
+    cfg, params = methods.in_dtype(cfg, FLAGS.dtype or cfg.dtype, params, matmul_precision=FLAGS.matmul_precision)
     policy = vla_policy.decoding_policy("ar", params, cfg, tok, vla_policy.ar)
     n = FLAGS.envs
     t0 = time.perf_counter()
@@ -98,8 +98,8 @@ def main(argv):
     }
     record = {**results_io.provenance("python -m experiments.studies.target_confidence " + " ".join(
                   f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states",
-                                                          "matmul_precision"))),
-              "batch": n, "summary": summary}
+                                                          "dtype", "matmul_precision"))),
+              "batch": n, "dtype": cfg.dtype, "summary": summary}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, record)
     print(json.dumps(summary, indent=1))
