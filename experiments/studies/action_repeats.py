@@ -113,10 +113,8 @@ def main(argv):
         print(f"  n_confirm {r['n_confirm']} k_skip {r['k_skip']}: {r['skipped']:.3f} of steps skipped, "
               f"{r['outside_tolerance']:.3f} of them outside the tolerance")
     if FLAGS.out:
-        command = "python -m experiments.studies.action_repeats " + " ".join(
-            f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "record_envs", "steps"))
         Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(command), **m})
+        results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), **m})
 
 
 if __name__ == "__main__":

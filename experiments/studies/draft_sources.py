@@ -81,9 +81,7 @@ def main(argv):
     _, by_metric = boundary.metric_table(measured, FLAGS.bins)
     _print("phase", [r["group"] for r in by_phase], by_phase)
     _print("metric bin", [f"{r['metric_lo']:.2f}-{r['metric_hi']:.2f}" for r in by_metric], by_metric)
-    record = {**results_io.provenance("python -m experiments.studies.draft_sources " + " ".join(
-                  f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "drafter", "datastore", "suites", "envs",
-                                                          "steps", "settings", "bins"))),
+    record = {**results_io.provenance(cli.command_line()),
               "steps": len(phase), "by_phase": by_phase, "by_metric": by_metric,
               "overall": boundary.group_table(measured, np.zeros(len(phase), np.int32), ("all",))[0]}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)

@@ -96,10 +96,7 @@ def main(argv):
         "batch1_vs_batch_states": len(same),
         "batch1_vs_batch_identical_actions": round(float(np.mean(same)), 4),
     }
-    record = {**results_io.provenance("python -m experiments.studies.target_confidence " + " ".join(
-                  f"--{k}={getattr(FLAGS, k)}" for k in ("checkpoint", "suites", "envs", "steps", "batch1_states",
-                                                          "dtype", "matmul_precision"))),
-              "batch": n, "dtype": cfg.dtype, "summary": summary}
+    record = {**results_io.provenance(cli.command_line()), "batch": n, "dtype": cfg.dtype, "summary": summary}
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, record)
     print(json.dumps(summary, indent=1))
