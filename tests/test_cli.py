@@ -37,6 +37,7 @@ CASES = [
                        "--cost_cache=/nonexistent/costs"], "has none for heisd at batch [1]: add --calibrate_costs"),
     ("bench_scale", ["--target_scale=llama3"], "<shipped|llama2-7b|llama-1b>"),
     ("scale_check", ["--dtypes=float16"], "--dtypes: unknown ['float16']; valid: float32, bfloat16"),
+    ("studies.op_invariance", ["--numerics=float16"], "valid are bfloat16, f32_act_bf16_products, float32"),
 ]
 
 
