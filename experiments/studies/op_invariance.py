@@ -14,9 +14,11 @@ checkpoint; `f32_act_bf16_products`, float32 activations with every matrix produ
 operands and float32 accumulation, `--dtype=float32 --matmul_precision=bf16`; `float32`), the
 first row of --batch rows of random inputs is run within the batch and alone, through:
   - each operation of a decoder layer and the output head at the target's widths (random
-    parameters), over blocks of T = 1, 8 (a draft tree) and the prompt's length of tokens;
-  - a whole decoder layer over such a block (causal), and the target's prefill with the
-    shipped weights (random images and instructions: the logits of the last prompt token).
+    parameters), over blocks of T = 1, 8 (a draft tree) and the prompt's length of tokens, and
+    the vision tower's patchify convolution and self-attention (over the image's patches);
+  - a whole decoder layer over such a block (causal); with the shipped weights (random images
+    and instructions), the prompt's embeddings (vision tower, text, proprio) and the prefill's
+    logits of the last prompt token.
 `batch`: the share of the row's output elements that differ; `batch_rel`: the largest
 difference relative to the output's largest magnitude. For the per-token operations at T > 1,
 `tokens` / `tokens_rel`: the same for the block's tokens run one at a time. A float32 output
@@ -90,6 +92,24 @@ def operations(cfg: vla.VLAConfig):
             return block.apply(params, x, None, None, jax.tree.map(lambda r: r[:n], rotary), None, mask[:n])[0]
         return fn, (x,)
 
+    def patchify(key, b, t):  # the vision tower's first operation, on images (t unused)
+        del t
+        kp, kx = jax.random.split(key)
+        x = jax.random.uniform(kx, (b, *cfg.image_shape), jnp.float32, -1, 1)
+        m = nn.Conv(cfg.vision_width, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=dtype)
+        params = m.init(kp, x[:1])
+        return (lambda x: m.apply(params, x)), (x,)
+
+    def vision_attention(fp32_softmax: bool):
+        def make(key, b, t):  # the vision tower's self-attention over the patches (t unused)
+            del t
+            kp, kx = jax.random.split(key)
+            x = normal(kx, (b, cfg.n_patches, cfg.vision_width))
+            m = nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=dtype, force_fp32_for_softmax=fp32_softmax)
+            params = m.init(kp, x[:1], x[:1])
+            return (lambda x: m.apply(params, x, x)), (x,)
+        return make
+
     dense = lambda n: nn.Dense(n, use_bias=False, dtype=dtype)  # noqa: E731
     return {
         f"qkv {d}x{3 * d}": (True, module(dense(3 * d), d)),
@@ -101,6 +121,9 @@ def operations(cfg: vla.VLAConfig):
         "attention q.k": (False, scores),
         "attention weights.v": (False, values),
         "decoder layer": (False, layer),
+        "vision patchify (conv)": (False, patchify),
+        "vision self-attention": (False, vision_attention(False)),
+        "vision self-attention, f32 softmax": (False, vision_attention(True)),
     }
 
 
@@ -127,7 +150,7 @@ def measure(cfg: vla.VLAConfig, params, numerics: str, batch: int) -> list[dict]
     at_precision = lambda fn: jax.jit(vla.at_config_precision(lambda _, c, *xs: fn(*xs)), static_argnums=1)  # noqa: E731
     rows = []
     for i, (name, (per_token, make)) in enumerate(operations(ncfg).items()):
-        for t in sorted({1, 8, cfg.prompt_len}):
+        for t in (sorted({1, 8, cfg.prompt_len}) if not name.startswith("vision") else [cfg.n_patches]):
             fn, inputs = make(jax.random.PRNGKey(i), batch, t)
             run = at_precision(fn)
             whole, alone = run(None, ncfg, *inputs), run(None, ncfg, *(x[:1] for x in inputs))
@@ -139,6 +162,9 @@ def measure(cfg: vla.VLAConfig, params, numerics: str, batch: int) -> list[dict]
     obs = Observation(image=jax.random.randint(k1, (batch, *cfg.image_shape), 0, 256).astype(jnp.uint8),
                       instruction=jax.random.randint(k2, (batch, cfg.text_len), 1, cfg.text_vocab),
                       proprio=jax.random.normal(k2, (batch, cfg.proprio_dim)))
+    embed = jax.jit(lambda p, o: vla.prompt_embeddings(p, ncfg, o))
+    alone = embed(nparams, jax.tree.map(lambda x: x[:1], obs))
+    rows.append(_row("prompt embeddings (shipped)", numerics, cfg.prompt_len, embed(nparams, obs), alone))
     prefill = jax.jit(lambda p, o: vla.prefill(p, ncfg, o)[0])
     alone = prefill(nparams, jax.tree.map(lambda x: x[:1], obs))
     rows.append(_row("prefill logits (shipped)", numerics, cfg.prompt_len, prefill(nparams, obs), alone))
