@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from heisd_jax import rounded_products
+from heisd_jax import invariant_products, rounded_products
 from heisd_jax.observation import PAD_ID, TEXT_LEN, TEXT_VOCAB, Observation
 from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
@@ -65,7 +65,8 @@ class VLAConfig:
     cache_slots: int = 0  # 0: prompt_len + DRAFT_SLOTS (7 actions + the largest draft tree, with room to spare)
     rope_base: float = 10000.0
     dtype: str = "float32"  # compute / cache dtype ("bfloat16" for speed)
-    # Precision of float32 matrix products (MATMUL_PRECISIONS); not used in bfloat16.
+    # Precision of float32 matrix products (MATMUL_PRECISIONS); in bfloat16 only
+    # "bf16_invariant" changes anything (batch-invariant kernels, `invariant_products`).
     matmul_precision: str = "float32"
     # Inference passes with the decoder layers, and AR's token loop, unrolled (see `VLA`).
     unroll: bool = False
@@ -152,9 +153,13 @@ class VLAConfig:
 # batch-invariant (BENCHMARKS.md). "tf32_rounded": every product's operands rounded to TF32
 # first (`rounded_products`), then TF32 tensor cores on a GPU and float32 elsewhere: the
 # products are exact in either, so every kernel forms the same ones, whichever a shape gets.
+# "bf16_invariant", in either dtype: every product on bfloat16 operands, float32 accumulation,
+# by one fixed-tile kernel, and every sum in a fixed order (`invariant_products`), so a row's
+# result does not depend on the batch around it.
 _PRECISION_SETTINGS = {"float32": "float32", "default": None, "tf32": "TF32_TF32_F32", "bf16": "BF16_BF16_F32",
                        "tf32x3": "TF32_TF32_F32_X3", "bf16x3": "BF16_BF16_F32_X3", "bf16x6": "BF16_BF16_F32_X6",
-                       "bf16x9": "BF16_BF16_F32_X9", "tf32_rounded": "TF32_TF32_F32"}
+                       "bf16x9": "BF16_BF16_F32_X9", "tf32_rounded": "TF32_TF32_F32",
+                       "bf16_invariant": None}
 MATMUL_PRECISIONS = tuple(_PRECISION_SETTINGS)
 _GPU_ONLY = ("tf32", "tf32x3", "bf16x9")  # XLA's CPU backend has no such algorithm
 
@@ -172,6 +177,8 @@ def at_config_precision(fn):
             raise ValueError(f'matmul_precision "{cfg.matmul_precision}" needs a GPU (the backend is '
                              f"{jax.default_backend()}); valid here: "
                              f"{', '.join(p for p in MATMUL_PRECISIONS if p not in _GPU_ONLY)}")
+        if cfg.matmul_precision == "bf16_invariant":
+            return invariant_products.batch_invariant(fn)(params, cfg, *args, **kwargs)
         rounded = float32 and cfg.matmul_precision == "tf32_rounded"
         if rounded and not on_gpu:
             setting = "float32"  # no TF32 units: the rounded operands' exact products in float32
@@ -365,6 +372,9 @@ class VisionEncoder(nn.Module):
     def __call__(self, image):
         cfg = self.cfg
         w, eps = cfg.vision_width, cfg.vision_norm_eps
+        # Batch-invariant numerics take the softmax in float32, as the decoder's is: a bf16
+        # softmax's intermediates round differently as XLA fuses them differently per batch size.
+        invariant = cfg.matmul_precision == "bf16_invariant"
         x = image.astype(jnp.float32) / 127.5 - 1.0
         x = nn.Conv(w, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype, name="patchify")(x)
         b = x.shape[0]
@@ -376,7 +386,8 @@ class VisionEncoder(nn.Module):
         x = x + self.param("pos", nn.initializers.normal(0.02), (1, cfg.image_tokens, w)).astype(x.dtype)
         for i in range(cfg.vision_layers):
             h = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"norm{i}")(x)
-            x = x + nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=cfg.dtype, name=f"attn{i}")(h, h, mask=mask)
+            x = x + nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=cfg.dtype, name=f"attn{i}",
+                                                    force_fp32_for_softmax=invariant)(h, h, mask=mask)
             x = x + SwiGLU(cfg.vision_mlp, cfg.dtype, name=f"mlp{i}")(
                 nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
         x = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name="out_norm")(x)

@@ -10,7 +10,8 @@ tokens: a token verified in a block of T must get what AR's single-token pass gi
 study finds the operations that break it, at the target's own shapes, on this device.
 
 For each numerics (--numerics: `bfloat16`, everything in bf16, as the evaluator runs a bf16
-checkpoint; `f32_act_bf16_products`, float32 activations with every matrix product on bf16
+checkpoint; `bf16_invariant`, the same with batch-invariant products and sums
+(`heisd_jax.invariant_products`, `--matmul_precision=bf16_invariant`); `f32_act_bf16_products`, float32 activations with every matrix product on bf16
 operands and float32 accumulation, `--dtype=float32 --matmul_precision=bf16`; `float32`), the
 first row of --batch rows of random inputs is run within the batch and alone, through:
   - each operation of a decoder layer and the output head at the target's widths (random
@@ -48,7 +49,7 @@ from heisd_jax.observation import Observation
 FLAGS = flags.FLAGS
 cli.define_paths("checkpoint")
 NUMERICS = {"bfloat16": ("bfloat16", "float32"), "f32_act_bf16_products": ("float32", "bf16"),
-            "float32": ("float32", "float32")}  # name -> (VLAConfig.dtype, VLAConfig.matmul_precision)
+            "float32": ("float32", "float32"), "bf16_invariant": ("bfloat16", "bf16_invariant")}  # name -> (VLAConfig.dtype, VLAConfig.matmul_precision)
 flags.DEFINE_list("numerics", list(NUMERICS), f"Numerics to test, of {list(NUMERICS)}.")
 flags.DEFINE_integer("batch", 256, "Rows of the batch a row alone is compared against.")
 flags.DEFINE_string("out", "results/op_invariance.json", "Results JSON.")

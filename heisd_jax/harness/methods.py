@@ -151,7 +151,10 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                                "for every product, float32 accumulation; 'tf32x3' (GPUs), 'bf16x3', 'bf16x6', "
                                "'bf16x9' (GPUs): 3 to 9 such products per product, near float32's rounding; "
                                "'tf32_rounded': every operand rounded to TF32 first, then TF32 tensor cores (GPUs) "
-                               "or float32, whose products are then exact, so every kernel forms the same ones.",
+                               "or float32, whose products are then exact, so every kernel forms the same ones; "
+                               "'bf16_invariant' (either dtype): every product on bf16 operands by one fixed-tile "
+                               "kernel and every sum in a fixed order, so a state's tokens do not depend on the "
+                               "batch (heisd_jax.invariant_products).",
                                vla.MATMUL_PRECISIONS),
         "target_scale": _S("target_scale", "The target (and drafter) expanded, function-preserving, to a larger "
                            "architecture (heisd_jax.scale, docs/scale.md): the shipped target's tokens at a larger "

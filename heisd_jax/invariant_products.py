@@ -1,0 +1,203 @@
+"""Batch-invariant numerics: every row's sums in one fixed order, whatever the batch size.
+
+Why: a greedy decoder gives one state the same actions alone and in a batch of 256 only if
+every operation computes that state's rows the same way in both. XLA does not: it picks a
+GEMM kernel (tile shapes, split-K, cuBLAS or Triton) per shape, and each kernel sums a dot
+product's terms in its own order. In float32 that moves a logit by ~1e-7 and a greedy token
+flips only on an exact tie; in bfloat16 every product's result is rounded to 8 bits, one
+rounding that goes the other way is a 0.4% change of that value, and it propagates: the
+target's action at batch 1 and at batch 256 differs on a third of states (docs/target.md).
+
+`batch_invariant(fn)` evaluates fn with:
+  - every floating `dot_general` (matrix products, attention's einsums) computed on bfloat16
+    operands with float32 accumulation by one Pallas kernel with fixed tiles (`BLOCK_*`): a
+    grid over the batch dimensions and over output tiles, each tile summing its K
+    dimension in fixed blocks in a fixed order, so an output element gets the same sequence of
+    tensor-core operations in any batch, with any number of rows beside it. Rows, columns and
+    K are zero-padded to whole tiles (a zero term leaves a sum unchanged). The result is cast
+    to the product's dtype, as XLA's products do.
+  - the patchify convolution (non-overlapping patches: kernel = stride, no padding) as the
+    same product over the image's patches.
+  - every floating `reduce_sum` (softmax denominators, RMSNorm's mean square) as a pairwise
+    tree of elementwise float32 additions over the reduced axes (zero-padded to a power of
+    two), whose order XLA keeps whatever the batch.
+This is the approach of batch-invariant kernels for LLM inference (Thinking Machines, "Defeating
+Nondeterminism in LLM Inference", 2025), applied by rewriting the model's program
+(`jaxpr_rewrite`), so the model needs no change. Elementwise bfloat16 operations must also
+round as written: XLA keeps a fusion's intermediates in float32 ("excess precision") and
+fuses differently at different shapes; `NO_EXCESS_PRECISION` is the per-program XLA option
+that turns it off.
+
+On a GPU the products run the Pallas kernel (Triton). Elsewhere they run XLA's product on the
+same bfloat16 operands with float32 accumulation (XLA's CPU dot kernels sum each row alike
+at every batch size, `experiments/studies/op_invariance.py` measures it), or the Pallas
+kernel in interpret mode where `interpret=True` (tests).
+"""
+
+from __future__ import annotations
+
+import functools
+from types import MappingProxyType
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import pallas as pl
+
+from heisd_jax import jaxpr_rewrite
+
+BLOCK_M, BLOCK_N, BLOCK_K = 64, 64, 32  # one tile shape for every product: the kernel's invariance
+NUM_WARPS, NUM_STAGES = 4, 3
+
+# The XLA option that makes every bfloat16 operation round its result, fused or not
+# (`jax.jit(fn, compiler_options=NO_EXCESS_PRECISION)`).
+NO_EXCESS_PRECISION = MappingProxyType({"xla_allow_excess_precision": False})
+
+
+def _round_up(n: int, m: int) -> int:
+    return -(-n // m) * m
+
+
+def _product_kernel(x_ref, y_ref, o_ref):
+    """One [BLOCK_M, BLOCK_N] output tile: its K blocks in order, float32 accumulation."""
+    k_blocks = x_ref.shape[-1] // BLOCK_K
+
+    def body(i, acc):
+        ks = pl.ds(i * BLOCK_K, BLOCK_K)
+        return acc + jnp.dot(x_ref[:, ks], y_ref[ks, :], preferred_element_type=jnp.float32)
+
+    acc = jax.lax.fori_loop(0, k_blocks, body, jnp.zeros((BLOCK_M, BLOCK_N), jnp.float32))
+    o_ref[...] = acc.astype(o_ref.dtype)
+
+
+def batched_matmul(x: jnp.ndarray, y: jnp.ndarray, out_dtype, interpret: bool = False) -> jnp.ndarray:
+    """[B, M, K] @ [B, K, N] -> [B, M, N] in out_dtype: bfloat16 operands, float32 sums in one
+    fixed order per output element (the Pallas kernel; `interpret`: its interpreter, any backend)."""
+    b, m, k = x.shape
+    n = y.shape[-1]
+    mp, np_, kp = _round_up(m, BLOCK_M), _round_up(n, BLOCK_N), _round_up(k, BLOCK_K)
+    x = jnp.pad(x.astype(jnp.bfloat16), ((0, 0), (0, mp - m), (0, kp - k)))
+    y = jnp.pad(y.astype(jnp.bfloat16), ((0, 0), (0, kp - k), (0, np_ - n)))
+    kwargs = {} if interpret else {"compiler_params": _triton_params()}
+    out = pl.pallas_call(
+        _product_kernel,
+        out_shape=jax.ShapeDtypeStruct((b, mp, np_), out_dtype),
+        grid=(b, mp // BLOCK_M, np_ // BLOCK_N),
+        in_specs=[pl.BlockSpec((None, BLOCK_M, kp), lambda i, j, l: (i, j, 0)),
+                  pl.BlockSpec((None, kp, BLOCK_N), lambda i, j, l: (i, 0, l))],
+        out_specs=pl.BlockSpec((None, BLOCK_M, BLOCK_N), lambda i, j, l: (i, j, l)),
+        interpret=interpret,
+        **kwargs,
+    )(x, y)
+    return out[:, :m, :n]
+
+
+def _triton_params():
+    from jax.experimental.pallas import triton as plgpu  # the GPU backend's parameters only where used
+    return plgpu.CompilerParams(num_warps=NUM_WARPS, num_stages=NUM_STAGES)
+
+
+def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interpret: bool = False, use_kernel=None):
+    """`jax.lax.dot_general` on bfloat16 operands with float32 accumulation, batch-invariant:
+    the operands rearranged to [batch, rows, K] and [batch, K, columns] for `batched_matmul`
+    (on a GPU or when interpret), or XLA's product on the same operands elsewhere."""
+    (lc, rc), (lb, rb) = dimension_numbers
+    out_dtype = jnp.dtype(preferred_element_type or jnp.result_type(lhs, rhs))
+    if use_kernel is None:
+        use_kernel = interpret or jax.default_backend() == "gpu"
+    if not use_kernel:
+        out = jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
+                                  preferred_element_type=jnp.float32)
+        return out.astype(out_dtype)
+    lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
+    rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
+    batch_shape = [lhs.shape[d] for d in lb]
+    lf_shape, rf_shape = [lhs.shape[d] for d in lf], [rhs.shape[d] for d in rf]
+    bsz, k = int(np.prod(batch_shape)), int(np.prod([lhs.shape[d] for d in lc]))
+    x = jnp.transpose(lhs, (*lb, *lf, *lc)).reshape(bsz, int(np.prod(lf_shape)), k)
+    y = jnp.transpose(rhs, (*rb, *rc, *rf)).reshape(bsz, k, int(np.prod(rf_shape)))
+    return batched_matmul(x, y, out_dtype, interpret).reshape(*batch_shape, *lf_shape, *rf_shape)
+
+
+def pairwise_sum(x: jnp.ndarray, axes) -> jnp.ndarray:
+    """jnp.sum(x, axes) as a pairwise tree of float32 additions (the reduced axes flattened,
+    zero-padded to a power of two, halves added until one is left), in x's dtype. Each output
+    element's additions are fixed by the number of values it sums alone."""
+    axes = tuple(sorted(a % x.ndim for a in axes))
+    kept = [d for d in range(x.ndim) if d not in axes]
+    kept_shape = [x.shape[d] for d in kept]
+    n = int(np.prod([x.shape[d] for d in axes]))
+    v = jnp.transpose(x, (*kept, *axes)).reshape(*kept_shape, n).astype(jnp.float32)
+    width = 1 << max(n - 1, 0).bit_length()
+    v = jnp.pad(v, [(0, 0)] * len(kept_shape) + [(0, width - n)])
+    while v.shape[-1] > 1:
+        half = v.shape[-1] // 2
+        v = v[..., :half] + v[..., half:]
+    return v[..., 0].astype(x.dtype)
+
+
+def _is_float(x) -> bool:
+    return jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
+
+
+def _product_rule(interpret):
+    def rule(invals, *, dimension_numbers, preferred_element_type=None, **params):
+        lhs, rhs = invals
+        if not (_is_float(lhs) and _is_float(rhs)):
+            return jax.lax.dot_general_p.bind(lhs, rhs, dimension_numbers=dimension_numbers,
+                                              preferred_element_type=preferred_element_type, **params)
+        return dot_general(lhs, rhs, dimension_numbers, preferred_element_type, interpret)
+
+    return rule
+
+
+def _sum_rule(invals, *, axes, **params):
+    (x,) = invals
+    if not _is_float(x) or not axes:
+        return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
+    return pairwise_sum(x, axes)
+
+
+def _patchify_rule(interpret):
+    """A convolution whose kernel tiles the input (stride = kernel size, no padding or
+    dilation, one group, NHWC / HWIO / NHWC) as a product over the patches."""
+
+    def rule(invals, *, window_strides, padding, lhs_dilation, rhs_dilation, dimension_numbers,
+             feature_group_count, batch_group_count, preferred_element_type=None, **params):
+        x, w = invals
+        kh, kw, cin, cout = w.shape
+        plain = (tuple(window_strides) == (kh, kw) and all(tuple(p) == (0, 0) for p in padding)
+                 and set(lhs_dilation) == {1} and set(rhs_dilation) == {1}
+                 and feature_group_count == 1 and batch_group_count == 1
+                 and tuple(dimension_numbers.lhs_spec) == (0, 3, 1, 2)
+                 and tuple(dimension_numbers.rhs_spec) == (3, 2, 0, 1)
+                 and tuple(dimension_numbers.out_spec) == (0, 3, 1, 2)
+                 and x.shape[1] % kh == 0 and x.shape[2] % kw == 0)
+        if not plain:
+            raise NotImplementedError(
+                "batch-invariant numerics compute a convolution only as a patchify (NHWC input, HWIO "
+                f"kernel, stride = kernel size, no padding); got strides {window_strides}, padding {padding}, "
+                f"kernel {w.shape}")
+        b, h, wd, _ = x.shape
+        patches = x.reshape(b, h // kh, kh, wd // kw, kw, cin).transpose(0, 1, 3, 2, 4, 5)
+        patches = patches.reshape(1, b * (h // kh) * (wd // kw), kh * kw * cin)
+        out_dtype = jnp.dtype(preferred_element_type or jnp.result_type(x, w))
+        out = dot_general(patches, w.reshape(1, kh * kw * cin, cout), (((2,), (1,)), ((0,), (0,))),
+                          out_dtype, interpret)
+        return out.reshape(b, h // kh, wd // kw, cout)
+
+    return rule
+
+
+def batch_invariant(fn, interpret: bool = False):
+    """fn with batch-invariant products, patchify convolutions and sums (the module's
+    docstring); `interpret`: the products by the Pallas kernel's interpreter on any backend."""
+    rules = {"dot_general": _product_rule(interpret), "conv_general_dilated": _patchify_rule(interpret),
+             "reduce_sum": _sum_rule}
+    return jaxpr_rewrite.with_rules(fn, rules)
+
+
+@functools.cache
+def kernel_available() -> bool:
+    """Whether this process's default backend runs the Pallas kernel natively (a GPU)."""
+    return jax.default_backend() == "gpu"
