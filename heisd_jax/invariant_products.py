@@ -36,6 +36,7 @@ kernel in interpret mode where `interpret=True` (tests).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from types import MappingProxyType
 
@@ -58,38 +59,83 @@ def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
 
 
-def _product_kernel(x_ref, y_ref, o_ref):
-    """One [BLOCK_M, BLOCK_N] output tile: its K blocks in order, float32 accumulation."""
-    k_blocks = x_ref.shape[-1] // BLOCK_K
+@dataclasses.dataclass(frozen=True)
+class _Operand:
+    """Where an operand's dimensions are, after merging its free and contracting ones: the
+    batch axes (in the product's batch order), the free axis and the contracting axis."""
+    batch: tuple[int, ...]
+    free: int
+    contract: int
+
+
+def _merged(x: jnp.ndarray, batch, free, contract):
+    """x reshaped (no copy) so its free dimensions are one axis and its contracting ones
+    another, where each group is adjacent and in order; else transposed to [batch, free,
+    contract] first (a copy). An empty group becomes a unit axis."""
+    def adjacent(group):
+        return list(group) == list(range(group[0], group[0] + len(group))) if group else True
+    if not (adjacent(free) and adjacent(contract)):
+        x = jnp.transpose(x, (*batch, *free, *contract))
+        nb = len(batch)
+        batch, free, contract = tuple(range(nb)), tuple(range(nb, nb + len(free))), \
+            tuple(range(nb + len(free), x.ndim))
+    # Each group collapses to the position of its first dimension (or, empty, a new last axis).
+    groups = [(d,) for d in batch] + [tuple(free) or None, tuple(contract) or None]
+    placed = sorted((g[0], i, g) for i, g in enumerate(groups) if g)
+    shape, where = [], {}
+    for _, i, g in placed:
+        where[i] = len(shape)
+        shape.append(int(np.prod([x.shape[d] for d in g])))
+    for i, g in enumerate(groups):
+        if not g:
+            where[i] = len(shape)
+            shape.append(1)
+    nb = len(batch)
+    return x.reshape(shape), _Operand(tuple(where[i] for i in range(nb)), where[nb], where[nb + 1])
+
+
+def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_shape, m, n, k):
+    """One [BLOCK_M, BLOCK_N] tile of one batch element's product: its K blocks in order,
+    float32 accumulation; rows, columns and K past the operands' ends read as zeros."""
+    pid_b, pid_m, pid_n = pl.program_id(0), pl.program_id(1), pl.program_id(2)
+    flat, idx = pid_b, []
+    for size in reversed(batch_shape):
+        idx.append(flat % size)
+        flat = flat // size
+    idx = idx[::-1]
+    rows = pid_m * BLOCK_M + jnp.arange(BLOCK_M)
+    cols = pid_n * BLOCK_N + jnp.arange(BLOCK_N)
+
+    def tile(ref, spec: _Operand, free_slice, k_slice, free_ok, k_ok):
+        """The [free, BLOCK_K] block of ref (its batch element's), zeros outside it."""
+        index = [None] * len(ref.shape)
+        for axis, i in zip(spec.batch, idx):
+            index[axis] = i
+        index[spec.free], index[spec.contract] = free_slice, k_slice
+        if spec.free < spec.contract:
+            return _load(ref, index, free_ok[:, None] & k_ok[None, :])
+        return _load(ref, index, k_ok[:, None] & free_ok[None, :]).T
 
     def body(i, acc):
-        ks = pl.ds(i * BLOCK_K, BLOCK_K)
-        return acc + jnp.dot(x_ref[:, ks], y_ref[ks, :], preferred_element_type=jnp.float32)
+        ks = i * BLOCK_K + jnp.arange(BLOCK_K)
+        k_slice = pl.ds(i * BLOCK_K, BLOCK_K)
+        a = tile(x_ref, xs, pl.ds(pid_m * BLOCK_M, BLOCK_M), k_slice, rows < m, ks < k)
+        b = tile(y_ref, ys, pl.ds(pid_n * BLOCK_N, BLOCK_N), k_slice, cols < n, ks < k)
+        return acc + jnp.dot(a.astype(jnp.bfloat16), b.T.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
 
-    acc = jax.lax.fori_loop(0, k_blocks, body, jnp.zeros((BLOCK_M, BLOCK_N), jnp.float32))
-    o_ref[...] = acc.astype(o_ref.dtype)
+    acc = jax.lax.fori_loop(0, -(-k // BLOCK_K), body, jnp.zeros((BLOCK_M, BLOCK_N), jnp.float32))
+    out = o_ref.at[pid_b, pl.ds(pid_m * BLOCK_M, BLOCK_M), pl.ds(pid_n * BLOCK_N, BLOCK_N)]
+    _store(out, acc.astype(o_ref.dtype), (rows < m)[:, None] & (cols < n)[None, :])
 
 
-def batched_matmul(x: jnp.ndarray, y: jnp.ndarray, out_dtype, interpret: bool = False) -> jnp.ndarray:
-    """[B, M, K] @ [B, K, N] -> [B, M, N] in out_dtype: bfloat16 operands, float32 sums in one
-    fixed order per output element (the Pallas kernel; `interpret`: its interpreter, any backend)."""
-    b, m, k = x.shape
-    n = y.shape[-1]
-    mp, np_, kp = _round_up(m, BLOCK_M), _round_up(n, BLOCK_N), _round_up(k, BLOCK_K)
-    x = jnp.pad(x.astype(jnp.bfloat16), ((0, 0), (0, mp - m), (0, kp - k)))
-    y = jnp.pad(y.astype(jnp.bfloat16), ((0, 0), (0, kp - k), (0, np_ - n)))
-    kwargs = {} if interpret else {"compiler_params": _triton_params()}
-    out = pl.pallas_call(
-        _product_kernel,
-        out_shape=jax.ShapeDtypeStruct((b, mp, np_), out_dtype),
-        grid=(b, mp // BLOCK_M, np_ // BLOCK_N),
-        in_specs=[pl.BlockSpec((None, BLOCK_M, kp), lambda i, j, l: (i, j, 0)),
-                  pl.BlockSpec((None, kp, BLOCK_N), lambda i, j, l: (i, 0, l))],
-        out_specs=pl.BlockSpec((None, BLOCK_M, BLOCK_N), lambda i, j, l: (i, j, l)),
-        interpret=interpret,
-        **kwargs,
-    )(x, y)
-    return out[:, :m, :n]
+def _load(ref, index, mask):
+    from jax.experimental.pallas import triton as plgpu
+    return plgpu.load(ref.at[tuple(index)], mask=mask, other=0)
+
+
+def _store(ref, value, mask):
+    from jax.experimental.pallas import triton as plgpu
+    plgpu.store(ref, value, mask=mask)
 
 
 def _triton_params():
@@ -97,10 +143,24 @@ def _triton_params():
     return plgpu.CompilerParams(num_warps=NUM_WARPS, num_stages=NUM_STAGES)
 
 
+def _padded(x: jnp.ndarray, spec: _Operand, free_block: int, whole_tiles: bool) -> jnp.ndarray:
+    """x zero-padded so a tile's slice fits in it: its free axis to at least one tile and its
+    contracting axis to at least one K block (a decode's few rows), or, with whole_tiles, both to
+    whole tiles (the interpreter clamps a slice that runs past an array's end, where the GPU's
+    masked loads read nothing)."""
+    def target(size, block):
+        return _round_up(size, block) if whole_tiles else size
+    pad = [(0, 0)] * x.ndim
+    pad[spec.free] = (0, target(x.shape[spec.free], free_block) - x.shape[spec.free])
+    pad[spec.contract] = (0, target(x.shape[spec.contract], BLOCK_K) - x.shape[spec.contract])
+    return jnp.pad(x, pad) if any(p[1] for p in pad) else x
+
+
 def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interpret: bool = False, use_kernel=None):
     """`jax.lax.dot_general` on bfloat16 operands with float32 accumulation, batch-invariant:
-    the operands rearranged to [batch, rows, K] and [batch, K, columns] for `batched_matmul`
-    (on a GPU or when interpret), or XLA's product on the same operands elsewhere."""
+    on a GPU (or when `interpret`), one Pallas program per output tile of each batch element,
+    reading the operands where they lie (strided: no transposes for the attention's einsums);
+    elsewhere XLA's product of the same operands."""
     (lc, rc), (lb, rb) = dimension_numbers
     out_dtype = jnp.dtype(preferred_element_type or jnp.result_type(lhs, rhs))
     if use_kernel is None:
@@ -109,14 +169,28 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
         out = jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
                                   preferred_element_type=jnp.float32)
         return out.astype(out_dtype)
-    lf = [d for d in range(lhs.ndim) if d not in lc and d not in lb]
-    rf = [d for d in range(rhs.ndim) if d not in rc and d not in rb]
-    batch_shape = [lhs.shape[d] for d in lb]
-    lf_shape, rf_shape = [lhs.shape[d] for d in lf], [rhs.shape[d] for d in rf]
-    bsz, k = int(np.prod(batch_shape)), int(np.prod([lhs.shape[d] for d in lc]))
-    x = jnp.transpose(lhs, (*lb, *lf, *lc)).reshape(bsz, int(np.prod(lf_shape)), k)
-    y = jnp.transpose(rhs, (*rb, *rc, *rf)).reshape(bsz, k, int(np.prod(rf_shape)))
-    return batched_matmul(x, y, out_dtype, interpret).reshape(*batch_shape, *lf_shape, *rf_shape)
+    lf = tuple(d for d in range(lhs.ndim) if d not in lc and d not in lb)
+    rf = tuple(d for d in range(rhs.ndim) if d not in rc and d not in rb)
+    batch_shape = tuple(lhs.shape[d] for d in lb)
+    out_shape = (*batch_shape, *(lhs.shape[d] for d in lf), *(rhs.shape[d] for d in rf))
+    m, n = int(np.prod([lhs.shape[d] for d in lf])), int(np.prod([rhs.shape[d] for d in rf]))
+    k = int(np.prod([lhs.shape[d] for d in lc]))
+    x, xs = _merged(lhs, tuple(lb), lf, tuple(lc))
+    y, ys = _merged(rhs, tuple(rb), rf, tuple(rc))
+    x, y = _padded(x, xs, BLOCK_M, interpret), _padded(y, ys, BLOCK_N, interpret)
+    bsz = int(np.prod(batch_shape))
+    mp, np_ = x.shape[xs.free], y.shape[ys.free]
+    kwargs = {} if interpret else {"compiler_params": _triton_params()}
+    out = pl.pallas_call(
+        functools.partial(_product_kernel, xs=xs, ys=ys, batch_shape=batch_shape or (1,), m=m, n=n, k=k),
+        out_shape=jax.ShapeDtypeStruct((bsz, mp, np_), out_dtype),
+        grid=(bsz, -(-m // BLOCK_M), -(-n // BLOCK_N)),
+        interpret=interpret,
+        **kwargs,
+    )(x, y)
+    if (mp, np_) != (m, n):
+        out = out[:, :m, :n]
+    return out.reshape(out_shape)
 
 
 def pairwise_sum(x: jnp.ndarray, axes) -> jnp.ndarray:
@@ -195,9 +269,3 @@ def batch_invariant(fn, interpret: bool = False):
     rules = {"dot_general": _product_rule(interpret), "conv_general_dilated": _patchify_rule(interpret),
              "reduce_sum": _sum_rule}
     return jaxpr_rewrite.with_rules(fn, rules)
-
-
-@functools.cache
-def kernel_available() -> bool:
-    """Whether this process's default backend runs the Pallas kernel natively (a GPU)."""
-    return jax.default_backend() == "gpu"

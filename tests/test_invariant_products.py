@@ -1,0 +1,94 @@
+"""`invariant_products`: the fixed-tile product kernel computes dot_general for every operand
+layout the model uses (natively on a GPU, by Pallas' interpreter elsewhere), a row's result
+does not depend on the rows beside it, sums are pairwise trees, the patchify convolution is
+the same product, and the model's bf16_invariant numerics give one state the same logits
+alone and in a batch."""
+
+import dataclasses
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from heisd_jax import invariant_products as ip
+from heisd_jax import vla
+from tiny_models import CFG, obs
+
+INTERPRET = jax.default_backend() != "gpu"  # the kernel itself on a GPU, its interpreter elsewhere
+
+
+def _random(shape, seed, dtype=jnp.bfloat16):
+    return jax.random.normal(jax.random.key(seed), shape, jnp.float32).astype(dtype)
+
+
+@pytest.mark.parametrize("spec,a,b", [
+    ("btk,kn->btn", (3, 70, 100), (100, 90)),  # a Dense layer: rows past a tile, K past a block
+    ("btk,kn->btn", (1, 1, 256), (256, 96)),  # one token's pass: a row far short of a tile
+    ("bthd,bshd->bhts", (2, 5, 4, 16), (2, 70, 4, 16)),  # attention scores, batch axes between the others
+    ("bhts,bshd->bthd", (2, 4, 5, 70), (2, 70, 4, 16)),  # attention weights times values
+    ("bshd,hdk->bsk", (2, 7, 4, 16), (4, 16, 33)),  # two contracting axes (an attention's output projection)
+    ("km,kn->mn", (40, 70), (40, 90)),  # contracting axis first: read transposed
+])
+def test_the_kernel_computes_dot_general_for_every_layout(spec, a, b):
+    x, y = _random(a, 0), _random(b, 1)
+    got = ip.batch_invariant(lambda x, y: jnp.einsum(spec, x, y, preferred_element_type=jnp.float32),
+                             interpret=INTERPRET)(x, y)
+    want = np.einsum(spec, np.asarray(x, np.float64), np.asarray(y, np.float64))
+    assert got.shape == want.shape and got.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-5 * np.abs(want).max())
+
+
+def test_float32_operands_are_rounded_to_bfloat16_and_the_result_keeps_their_dtype():
+    x, w = _random((4, 64), 2, jnp.float32), _random((64, 32), 3, jnp.float32)
+    got = ip.batch_invariant(lambda x, w: x @ w, interpret=INTERPRET)(x, w)
+    assert got.dtype == jnp.float32
+    want = np.asarray(x.astype(jnp.bfloat16), np.float64) @ np.asarray(w.astype(jnp.bfloat16), np.float64)
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-5 * np.abs(want).max())
+
+
+def test_a_row_gets_the_same_bits_alone_and_in_a_batch():
+    x, w = _random((6, 70, 100), 4), _random((100, 90), 5)
+    dense = jax.jit(ip.batch_invariant(lambda x: x @ w, interpret=INTERPRET))
+    whole = np.asarray(dense(x), np.float32)
+    np.testing.assert_array_equal(whole[:1], np.asarray(dense(x[:1]), np.float32))  # one batch row
+    np.testing.assert_array_equal(whole[:, :1], np.asarray(dense(x[:, :1]), np.float32))  # one token
+    q, k = _random((5, 3, 4, 16), 6), _random((5, 40, 4, 16), 7)
+    scores = jax.jit(ip.batch_invariant(lambda q, k: jnp.einsum("bthd,bshd->bhts", q, k), interpret=INTERPRET))
+    np.testing.assert_array_equal(np.asarray(scores(q, k)[:1], np.float32), np.asarray(scores(q[:1], k[:1]), np.float32))
+
+
+def test_sums_are_pairwise_trees_of_the_values():
+    x = _random((3, 300, 5), 8, jnp.float32)
+    got = ip.pairwise_sum(x, (1, 2))
+    np.testing.assert_allclose(np.asarray(got), np.asarray(x, np.float64).sum((1, 2)), rtol=1e-5)
+    assert ip.pairwise_sum(x, (1,)).shape == (3, 5) and ip.pairwise_sum(x.astype(jnp.bfloat16), (1,)).dtype == jnp.bfloat16
+    # the rewritten softmax sums with the tree: a row alone and in a batch agree bit for bit
+    soft = jax.jit(ip.batch_invariant(lambda v: jax.nn.softmax(v, -1)))
+    np.testing.assert_array_equal(np.asarray(soft(x[:, :, 0])[:1]), np.asarray(soft(x[:1, :, 0])))
+
+
+def test_the_patchify_convolution_is_the_product_over_patches_and_others_are_refused():
+    img = jax.random.uniform(jax.random.key(9), (2, 16, 32, 3), jnp.float32, -1, 1)
+    conv = nn.Conv(24, (8, 8), strides=8, dtype=jnp.bfloat16)
+    p = conv.init(jax.random.key(10), img)
+    got = ip.batch_invariant(conv.apply, interpret=INTERPRET)(p, img)
+    want = conv.apply(p, img)
+    assert got.shape == want.shape == (2, 2, 4, 24)
+    np.testing.assert_allclose(np.asarray(got, np.float32), np.asarray(want, np.float32), atol=2e-2)
+    overlapping = nn.Conv(24, (8, 8), strides=4, dtype=jnp.bfloat16)
+    with pytest.raises(NotImplementedError, match="only as a patchify"):
+        ip.batch_invariant(overlapping.apply)(overlapping.init(jax.random.key(10), img), img)
+
+
+def test_the_models_bf16_invariant_numerics_give_a_state_the_same_logits_alone_and_in_a_batch():
+    base = dataclasses.replace(CFG, dtype="bfloat16")
+    cfg = dataclasses.replace(base, matmul_precision="bf16_invariant")
+    params = jax.tree.map(lambda p: p.astype(jnp.bfloat16), vla.init_params(CFG, jax.random.PRNGKey(2)))
+    o = obs(batch=4)
+    prefill = jax.jit(lambda p, o, c: vla.prefill(p, c, o)[0], static_argnums=2)
+    whole, alone = prefill(params, o, cfg), prefill(params, jax.tree.map(lambda x: x[:1], o), cfg)
+    np.testing.assert_array_equal(np.asarray(whole[:1]), np.asarray(alone))
+    # the same function as XLA's bf16 numerics, up to bf16 roundings
+    np.testing.assert_allclose(np.asarray(whole), np.asarray(prefill(params, o, base)), atol=0.05)
