@@ -54,7 +54,7 @@ def test_bf16_pins_one_algorithm_for_every_product():
 @pytest.mark.skipif(jax.default_backend() == "gpu", reason="TF32 runs on GPUs")
 @pytest.mark.parametrize("name", ["tf32", "tf32x3", "bf16x9"])
 def test_gpu_only_algorithms_without_a_gpu_are_refused_before_tracing(name):
-    with pytest.raises(ValueError, match=f'"{name}" needs a GPU.*valid here: float32, default, bf16, bf16x3, bf16x6, tf32_rounded(\n|$)'):
+    with pytest.raises(ValueError, match=f'"{name}" needs a GPU.*valid here: float32, default, bf16, bf16x3, bf16x6, tf32_rounded, bf16_invariant(\n|$)'):
         _products(dataclasses.replace(CFG, matmul_precision=name))
 
 
