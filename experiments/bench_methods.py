@@ -70,6 +70,9 @@ flags.DEFINE_enum("target_scale", None, list(scale.SCALE_NAMES), "Every timed me
                   "the recording runs the shipped target, whose tokens are the same.")
 flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "Every timed method (and the ceiling) in this dtype, unless its "
                   "--methods settings name one.")
+flags.DEFINE_enum("matmul_precision", None, list(vla.MATMUL_PRECISIONS), "Every timed method (and the ceiling) at "
+                  "this matrix-product precision, unless its --methods settings name one (bf16_invariant: `=AR` "
+                  "then says whether strict methods are token-identical to AR in bf16).")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_bool("device_loops", False, "Compile every replay (AR's, the ceiling's and each method's) with "
                   "heisd_jax.xla_options.DEVICE_LOOPS: on a GPU the replay's step loop, the draft rounds and the "
@@ -81,8 +84,8 @@ flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --
 
 
 def common_settings() -> dict:
-    """The settings --target_scale and --dtype give every timed method."""
-    return {k: FLAGS[k].value for k in ("target_scale", "dtype") if FLAGS[k].value is not None}
+    """The settings --target_scale, --dtype and --matmul_precision give every timed method."""
+    return {k: FLAGS[k].value for k in ("target_scale", "dtype", "matmul_precision") if FLAGS[k].value is not None}
 
 
 def prefill_policy(env: TabletopEnv):

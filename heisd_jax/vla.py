@@ -324,10 +324,11 @@ class DecoderBlock(nn.Module):
     cfg: VLAConfig
 
     @nn.compact
-    def __call__(self, x, layer_k, layer_v, rotary, cache_mask, block_mask):
+    def __call__(self, x, layer_k, layer_v, rotary, cache_mask, block_mask, ancestor_slots=None):
         # x [B, T, D]; layer_k/v [B, S, H, Dh] or None (no cache); rotary: `rotary_angles`;
         # cache_mask [B, T, S] (which cache slots each token sees; None without a cache);
-        # block_mask [B, T, T] (which of the block's tokens each sees, itself included).
+        # block_mask [B, T, T] (which of the block's tokens each sees, itself included);
+        # ancestor_slots [B, T, S] or None: `ancestor_slots`, for `_attend_at_ar_slots`.
         cfg = self.cfg
         b, t, d = x.shape
         hd = d // cfg.n_heads
@@ -348,6 +349,8 @@ class DecoderBlock(nn.Module):
         if layer_k is None:
             attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
             out = jnp.einsum("bhts,bshd->bthd", attn, v)
+        elif ancestor_slots is not None:
+            out = _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, ancestor_slots, scale, cfg.dtype)
         else:  # one softmax over [cache slots, block tokens]
             cache_logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32) * scale
             cache_logits = jnp.where(cache_mask[:, None], cache_logits, NEG_INF)
@@ -358,6 +361,41 @@ class DecoderBlock(nn.Module):
         x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype,
                                                                           name="mlp_norm")(x))
         return x, (k, v)
+
+
+def ancestor_slots(positions: jnp.ndarray, block_mask: jnp.ndarray, slots: int) -> jnp.ndarray:
+    """[B, T, S] int: for each block token and cache slot, the block token that AR would find at
+    that slot when decoding it (one of its ancestors: a committed token's slot is its position),
+    or -1 where it finds the cache's own entry. positions [B, T]; block_mask [B, T, T]."""
+    t = positions.shape[1]
+    ancestor = block_mask & ~jnp.eye(t, dtype=bool)[None]  # [B, T(query), T(block token)]
+    at = ancestor[:, :, None, :] & (positions[:, None, None, :] == jnp.arange(slots)[None, None, :, None])
+    return jnp.where(at.any(-1), jnp.argmax(at, -1), -1).astype(jnp.int32)
+
+
+def _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, src, scale, dtype):
+    """Attention of a block of T tokens laid out as AR lays out each one's single-token pass:
+    a softmax over [the S cache slots, itself], where an ancestor's score and value stand at
+    the slot AR's cache holds it in, then weights times values summed over the slots, plus its
+    own. With every product and sum in one order per element whatever its shape
+    (`invariant_products`), each token of a tree then gets the bits AR's pass gives it, so
+    strict verification is token-identical to AR in bfloat16 too. Costs a per-token copy of the
+    layer's values ([B, T, S, H, Dh]); used by passes of more than one token against a cache
+    under `matmul_precision="bf16_invariant"`.
+    q, k, v [B, T, H, Dh]; layer_k/v [B, S, H, Dh]; cache_mask [B, T, S]; src [B, T, S]."""
+    from_block = src >= 0  # [B, T, S]
+    at = jnp.maximum(src, 0)
+    cache_logits = jnp.einsum("bthd,bshd->bhts", q, layer_k).astype(jnp.float32)
+    block_logits = jnp.einsum("bthd,bshd->bhts", q, k).astype(jnp.float32)  # [B, H, T, T]
+    ancestors = jnp.take_along_axis(block_logits, jnp.broadcast_to(at[:, None], cache_logits.shape), -1)
+    logits = jnp.where(from_block[:, None], ancestors, cache_logits) * scale
+    logits = jnp.where((cache_mask | from_block)[:, None], logits, NEG_INF)
+    own = jnp.diagonal(block_logits, axis1=-2, axis2=-1)[..., None] * scale  # [B, H, T, 1]
+    attn = jax.nn.softmax(jnp.concatenate([logits, own], -1), -1).astype(dtype)
+    rows = jnp.arange(v.shape[0])[:, None, None]
+    values = jnp.where(from_block[..., None, None], v[rows, at], layer_v[:, None])  # [B, T, S, H, Dh]
+    return (jnp.einsum("bhts,btshd->bthd", attn[..., :-1], values)
+            + jnp.einsum("bhtk,btkhd->bthd", attn[..., -1:], v[:, :, None]))
 
 
 class VisionEncoder(nn.Module):
@@ -418,7 +456,7 @@ class VLA(nn.Module):
         else:
             self.blocks = nn.scan(
                 DecoderBlock, variable_axes={"params": 0}, split_rngs={"params": True},
-                in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
+                in_axes=(0, 0, nn.broadcast, nn.broadcast, nn.broadcast, nn.broadcast), length=cfg.n_layers,
                 unroll=cfg.n_layers if self.training or cfg.unroll else 1,
             )(cfg)
         self.final_norm = nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype)
@@ -441,15 +479,18 @@ class VLA(nn.Module):
         keys/values [L, B, T, H, Dh]."""
         ck, cv = (None, None) if cache is None else (cache.k, cache.v)
         rotary = rotary_angles(self.cfg, positions)
+        slots = None  # a pass of several tokens against a cache attends as AR's would under invariant numerics
+        if cache is not None and x.shape[1] > 1 and self.cfg.matmul_precision == "bf16_invariant":
+            slots = ancestor_slots(positions, block_mask, cache.k.shape[2])
         if self.cfg.per_layer:
             kv = []
             for i, layer in enumerate(self.layers):
                 x, out = layer(x, None if ck is None else ck[i], None if cv is None else cv[i], rotary, cache_mask,
-                               block_mask)
+                               block_mask, slots)
                 kv.append(out)
             k, v = jnp.stack([a for a, _ in kv]), jnp.stack([b for _, b in kv])
         else:
-            x, (k, v) = self.blocks(x, ck, cv, rotary, cache_mask, block_mask)
+            x, (k, v) = self.blocks(x, ck, cv, rotary, cache_mask, block_mask, slots)
         hidden = self.final_norm(x)
         return hidden, self.head(hidden[:, logits_from:]).astype(jnp.float32), (k, v)
 

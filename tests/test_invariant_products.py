@@ -92,3 +92,36 @@ def test_the_models_bf16_invariant_numerics_give_a_state_the_same_logits_alone_a
     np.testing.assert_array_equal(np.asarray(whole[:1]), np.asarray(alone))
     # the same function as XLA's bf16 numerics, up to bf16 roundings
     np.testing.assert_allclose(np.asarray(whole), np.asarray(prefill(params, o, base)), atol=0.05)
+
+
+def test_a_tree_pass_gives_each_token_the_logits_of_ars_single_token_passes_bit_for_bit():
+    """Under bf16_invariant a pass of several tokens attends at AR's slots (`vla.ancestor_slots`),
+    so strict verification is token-identical to AR in bf16: the tree [a0 -> a1 -> a2, a0 -> x]
+    in one pass against AR committing a0, a1 one pass at a time (and x after a0)."""
+    cfg = dataclasses.replace(CFG, dtype="bfloat16", matmul_precision="bf16_invariant")
+    params = jax.tree.map(lambda p: p.astype(jnp.bfloat16), vla.init_params(CFG, jax.random.PRNGKey(5)))
+    o = obs(seed=3, batch=2)
+    run = lambda f: jax.jit(ip.batch_invariant(f, interpret=INTERPRET))  # noqa: E731  the kernel, not XLA's dot
+    _, _, cache = run(lambda p, o: vla.prefill(p, cfg, o))(params, o)
+    ids = jnp.asarray([[40, 90, 200, 77], [41, 91, 201, 78]], jnp.int32)  # a0, a1, a2, x per row
+    one = run(lambda p, c, t: vla.cached_pass(p, cfg, c, t, jnp.zeros((2, 1), jnp.int32), jnp.ones((2, 1, 1), bool)))
+    keep = jax.jit(lambda c, blk: vla.commit(c, blk, jnp.zeros((2, 1), jnp.int32), jnp.ones((2,), jnp.int32)))
+    ar, c = [], cache
+    for j in range(3):  # a0, a1, a2 in turn
+        lg, _, blk = one(params, c, ids[:, j:j + 1])
+        ar.append(lg[:, 0])
+        c = keep(c, blk)
+        if j == 0:
+            after_a0 = c
+    x_after_a0 = one(params, after_a0, ids[:, 3:4])[0][:, 0]
+    parent = np.array([-1, 0, 1, 0])
+    intra = np.eye(4, dtype=bool)
+    for i in range(4):
+        j = parent[i]
+        while j >= 0:
+            intra[i, j], j = True, parent[j]
+    depth = jnp.asarray(np.broadcast_to([0, 1, 2, 1], (2, 4)), jnp.int32)
+    tree = run(lambda p, c, t, d, m: vla.cached_pass(p, cfg, c, t, d, m)[0])(
+        params, cache, ids, depth, jnp.asarray(np.broadcast_to(intra, (2, 4, 4))))
+    for i, want in enumerate([*ar, x_after_a0]):
+        np.testing.assert_array_equal(np.asarray(tree[:, i]), np.asarray(want), err_msg=f"tree token {i}")
