@@ -11,11 +11,12 @@ target's action at batch 1 and at batch 256 differs on a third of states (docs/t
 `batch_invariant(fn)` evaluates fn with:
   - every floating `dot_general` (matrix products, attention's einsums) computed on bfloat16
     operands with float32 accumulation by one Pallas kernel with fixed tiles (`BLOCK_*`): a
-    grid over the batch dimensions and over output tiles, each tile summing its K
-    dimension in fixed blocks in a fixed order, so an output element gets the same sequence of
-    tensor-core operations in any batch, with any number of rows beside it. Rows, columns and
-    K are zero-padded to whole tiles (a zero term leaves a sum unchanged). The result is cast
-    to the product's dtype, as XLA's products do.
+    grid over the batch dimensions and over output tiles, each tile summing its K dimension in
+    fixed blocks in a fixed order, so an output element gets the same sequence of tensor-core
+    operations in any batch, with any number of rows beside it. The kernel reads the operands
+    where they lie (strided: attention's einsums need no transposes); rows, columns and K past
+    an operand's end read as zeros (a zero term leaves a sum unchanged). The result is cast to
+    the product's dtype, as XLA's products do.
   - the patchify convolution (non-overlapping patches: kernel = stride, no padding) as the
     same product over the image's patches.
   - every floating `reduce_sum` (softmax denominators, RMSNorm's mean square) as a pairwise
@@ -23,22 +24,22 @@ target's action at batch 1 and at batch 256 differs on a third of states (docs/t
     two), whose order XLA keeps whatever the batch.
 This is the approach of batch-invariant kernels for LLM inference (Thinking Machines, "Defeating
 Nondeterminism in LLM Inference", 2025), applied by rewriting the model's program
-(`jaxpr_rewrite`), so the model needs no change. Elementwise bfloat16 operations must also
-round as written: XLA keeps a fusion's intermediates in float32 ("excess precision") and
-fuses differently at different shapes; `NO_EXCESS_PRECISION` is the per-program XLA option
-that turns it off.
+(`jaxpr_rewrite`), so the model needs no change. The model does two things itself under
+`matmul_precision="bf16_invariant"` (`heisd_jax.vla`): the vision tower's softmax in float32,
+and a pass of several tokens attending at AR's cache slots, which makes strict speculative
+decoding token-identical to AR. On an H200 that gives batch 1 the tokens of batch 256 on
+every state measured, with XLA's excess precision on or off (docs/target.md).
 
 On a GPU the products run the Pallas kernel (Triton). Elsewhere they run XLA's product on the
-same bfloat16 operands with float32 accumulation (XLA's CPU dot kernels sum each row alike
-at every batch size, `experiments/studies/op_invariance.py` measures it), or the Pallas
-kernel in interpret mode where `interpret=True` (tests).
+same bfloat16 operands with float32 accumulation, which a CPU does not promise to sum alike at
+every shape (on 2 cores: the same tokens on 58 of 60 states), or, with `interpret=True`, the
+kernel through Pallas' interpreter (tests; slow).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-from types import MappingProxyType
 
 import jax
 import jax.numpy as jnp
@@ -49,10 +50,6 @@ from heisd_jax import jaxpr_rewrite
 
 BLOCK_M, BLOCK_N, BLOCK_K = 64, 64, 32  # one tile shape for every product: the kernel's invariance
 NUM_WARPS, NUM_STAGES = 4, 3
-
-# The XLA option that makes every bfloat16 operation round its result, fused or not
-# (`jax.jit(fn, compiler_options=NO_EXCESS_PRECISION)`).
-NO_EXCESS_PRECISION = MappingProxyType({"xla_allow_excess_precision": False})
 
 
 def _round_up(n: int, m: int) -> int:
