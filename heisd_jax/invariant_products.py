@@ -10,7 +10,7 @@ target's action at batch 1 and at batch 256 differs on a third of states (docs/t
 
 `batch_invariant(fn)` evaluates fn with:
   - every floating `dot_general` (matrix products, attention's einsums) computed on bfloat16
-    operands with float32 accumulation by one Pallas kernel with fixed tiles (`BLOCK_*`): a
+    operands with float32 accumulation by one Pallas kernel with fixed tiles (`Tiles`): a
     grid over the batch dimensions and over output tiles, each tile summing its K dimension in
     fixed blocks in a fixed order, so an output element gets the same sequence of tensor-core
     operations in any batch, with any number of rows beside it. The kernel reads the operands
@@ -38,6 +38,7 @@ kernel through Pallas' interpreter (tests; slow).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 
@@ -48,8 +49,51 @@ from jax.experimental import pallas as pl
 
 from heisd_jax import jaxpr_rewrite
 
-BLOCK_M, BLOCK_N, BLOCK_K = 64, 64, 32  # one tile shape for every product: the kernel's invariance
-NUM_WARPS, NUM_STAGES = 4, 3
+
+
+@dataclasses.dataclass(frozen=True)
+class Tiles:
+    """The kernel's one configuration: output tiles of m x n, K summed in blocks of k, on
+    `warps` warps with `stages` pipelined loads. Every product of a program uses the same one,
+    which is what makes it batch-invariant; which one is fastest is a device's question
+    (`experiments/studies/invariant_tiles.py` times them)."""
+    m: int = 64
+    n: int = 64
+    k: int = 32
+    warps: int = 4
+    stages: int = 3
+
+    def __post_init__(self):
+        for name in ("m", "n", "k"):
+            v = getattr(self, name)
+            if v < 16 or v & (v - 1):
+                raise ValueError(f"tile {name}={v}: must be a power of two >= 16 (a tensor-core tile)")
+        if self.warps not in (1, 2, 4, 8, 16):
+            raise ValueError(f"warps={self.warps}: valid are 1, 2, 4, 8, 16")
+        if self.stages < 1:
+            raise ValueError(f"stages={self.stages}: must be >= 1")
+
+    @classmethod
+    def parse(cls, text: str) -> "Tiles":
+        """'MxNxK' or 'MxNxKxWARPS' or 'MxNxKxWARPSxSTAGES', e.g. '64x64x32x4'."""
+        try:
+            return cls(*(int(v) for v in text.lower().split("x")))
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"tiles {text!r}: expected MxNxK[xWARPS[xSTAGES]] of powers of two, e.g. 64x64x32x4 "
+                             f"({e})") from None
+
+
+_tiles = [Tiles()]
+
+
+@contextlib.contextmanager
+def tile_shape(tiles: Tiles):
+    """Products traced inside use `tiles` (a function jitted before keeps what it was traced with)."""
+    _tiles.append(tiles)
+    try:
+        yield
+    finally:
+        _tiles.pop()
 
 
 def _round_up(n: int, m: int) -> int:
@@ -91,20 +135,21 @@ def _merged(x: jnp.ndarray, batch, free, contract):
     return x.reshape(shape), _Operand(tuple(where[i] for i in range(nb)), where[nb], where[nb + 1])
 
 
-def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_shape, m, n, k):
-    """One [BLOCK_M, BLOCK_N] tile of one batch element's product: its K blocks in order,
+def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_shape, m, n, k, tiles: Tiles):
+    """One [tiles.m, tiles.n] tile of one batch element's product: its K blocks in order,
     float32 accumulation; rows, columns and K past the operands' ends read as zeros."""
+    bm, bn, bk = tiles.m, tiles.n, tiles.k
     pid_b, pid_m, pid_n = pl.program_id(0), pl.program_id(1), pl.program_id(2)
     flat, idx = pid_b, []
     for size in reversed(batch_shape):
         idx.append(flat % size)
         flat = flat // size
     idx = idx[::-1]
-    rows = pid_m * BLOCK_M + jnp.arange(BLOCK_M)
-    cols = pid_n * BLOCK_N + jnp.arange(BLOCK_N)
+    rows = pid_m * bm + jnp.arange(bm)
+    cols = pid_n * bn + jnp.arange(bn)
 
     def tile(ref, spec: _Operand, free_slice, k_slice, free_ok, k_ok):
-        """The [free, BLOCK_K] block of ref (its batch element's), zeros outside it."""
+        """The [free, tiles.k] block of ref (its batch element's), zeros outside it."""
         index = [None] * len(ref.shape)
         for axis, i in zip(spec.batch, idx):
             index[axis] = i
@@ -114,14 +159,14 @@ def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_sh
         return _load(ref, index, k_ok[:, None] & free_ok[None, :]).T
 
     def body(i, acc):
-        ks = i * BLOCK_K + jnp.arange(BLOCK_K)
-        k_slice = pl.ds(i * BLOCK_K, BLOCK_K)
-        a = tile(x_ref, xs, pl.ds(pid_m * BLOCK_M, BLOCK_M), k_slice, rows < m, ks < k)
-        b = tile(y_ref, ys, pl.ds(pid_n * BLOCK_N, BLOCK_N), k_slice, cols < n, ks < k)
+        ks = i * bk + jnp.arange(bk)
+        k_slice = pl.ds(i * bk, bk)
+        a = tile(x_ref, xs, pl.ds(pid_m * bm, bm), k_slice, rows < m, ks < k)
+        b = tile(y_ref, ys, pl.ds(pid_n * bn, bn), k_slice, cols < n, ks < k)
         return acc + jnp.dot(a.astype(jnp.bfloat16), b.T.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
 
-    acc = jax.lax.fori_loop(0, -(-k // BLOCK_K), body, jnp.zeros((BLOCK_M, BLOCK_N), jnp.float32))
-    out = o_ref.at[pid_b, pl.ds(pid_m * BLOCK_M, BLOCK_M), pl.ds(pid_n * BLOCK_N, BLOCK_N)]
+    acc = jax.lax.fori_loop(0, -(-k // bk), body, jnp.zeros((bm, bn), jnp.float32))
+    out = o_ref.at[pid_b, pl.ds(pid_m * bm, bm), pl.ds(pid_n * bn, bn)]
     _store(out, acc.astype(o_ref.dtype), (rows < m)[:, None] & (cols < n)[None, :])
 
 
@@ -135,22 +180,18 @@ def _store(ref, value, mask):
     plgpu.store(ref, value, mask=mask)
 
 
-def _triton_params():
+def _triton_params(tiles: Tiles):
     from jax.experimental.pallas import triton as plgpu  # the GPU backend's parameters only where used
-    return plgpu.CompilerParams(num_warps=NUM_WARPS, num_stages=NUM_STAGES)
+    return plgpu.CompilerParams(num_warps=tiles.warps, num_stages=tiles.stages)
 
 
-def _padded(x: jnp.ndarray, spec: _Operand, free_block: int, whole_tiles: bool) -> jnp.ndarray:
-    """x zero-padded so a tile's slice fits in it: its free axis to at least one tile and its
-    contracting axis to at least one K block (a decode's few rows), or, with whole_tiles, both to
-    whole tiles (the interpreter clamps a slice that runs past an array's end, where the GPU's
-    masked loads read nothing)."""
-    def target(size, block):
-        return _round_up(size, block) if whole_tiles else size
+def _whole_tiles(x: jnp.ndarray, spec: _Operand, free_block: int, k_block: int) -> jnp.ndarray:
+    """x zero-padded to whole tiles along its free and contracting axes: for the interpreter,
+    which clamps a slice that runs past an array's end where the GPU's masked loads read nothing."""
     pad = [(0, 0)] * x.ndim
-    pad[spec.free] = (0, target(x.shape[spec.free], free_block) - x.shape[spec.free])
-    pad[spec.contract] = (0, target(x.shape[spec.contract], BLOCK_K) - x.shape[spec.contract])
-    return jnp.pad(x, pad) if any(p[1] for p in pad) else x
+    for axis, block in ((spec.free, free_block), (spec.contract, k_block)):
+        pad[axis] = (0, _round_up(x.shape[axis], block) - x.shape[axis])
+    return jnp.pad(x, pad)
 
 
 def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interpret: bool = False, use_kernel=None):
@@ -174,14 +215,17 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
     k = int(np.prod([lhs.shape[d] for d in lc]))
     x, xs = _merged(lhs, tuple(lb), lf, tuple(lc))
     y, ys = _merged(rhs, tuple(rb), rf, tuple(rc))
-    x, y = _padded(x, xs, BLOCK_M, interpret), _padded(y, ys, BLOCK_N, interpret)
+    tiles = _tiles[-1]
+    if interpret:
+        x, y = _whole_tiles(x, xs, tiles.m, tiles.k), _whole_tiles(y, ys, tiles.n, tiles.k)
     bsz = int(np.prod(batch_shape))
     mp, np_ = x.shape[xs.free], y.shape[ys.free]
-    kwargs = {} if interpret else {"compiler_params": _triton_params()}
+    kwargs = {} if interpret else {"compiler_params": _triton_params(tiles)}
     out = pl.pallas_call(
-        functools.partial(_product_kernel, xs=xs, ys=ys, batch_shape=batch_shape or (1,), m=m, n=n, k=k),
+        functools.partial(_product_kernel, xs=xs, ys=ys, batch_shape=batch_shape or (1,), m=m, n=n, k=k,
+                          tiles=tiles),
         out_shape=jax.ShapeDtypeStruct((bsz, mp, np_), out_dtype),
-        grid=(bsz, -(-m // BLOCK_M), -(-n // BLOCK_N)),
+        grid=(bsz, -(-m // tiles.m), -(-n // tiles.n)),
         interpret=interpret,
         **kwargs,
     )(x, y)

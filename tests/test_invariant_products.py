@@ -125,3 +125,17 @@ def test_a_tree_pass_gives_each_token_the_logits_of_ars_single_token_passes_bit_
         params, cache, ids, depth, jnp.asarray(np.broadcast_to(intra, (2, 4, 4))))
     for i, want in enumerate([*ar, x_after_a0]):
         np.testing.assert_array_equal(np.asarray(tree[:, i]), np.asarray(want), err_msg=f"tree token {i}")
+
+
+def test_another_tile_shape_computes_the_same_product_and_bad_ones_are_refused():
+    x, w = _random((3, 70, 100), 11), _random((100, 90), 12)
+    with ip.tile_shape(ip.Tiles.parse("16x32x64x2")):
+        got = jax.jit(ip.batch_invariant(lambda x, w: jnp.einsum("btk,kn->btn", x, w, preferred_element_type=jnp.float32),
+                                         interpret=INTERPRET))(x, w)
+    want = np.einsum("btk,kn->btn", np.asarray(x, np.float64), np.asarray(w, np.float64))
+    np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=1e-5 * np.abs(want).max())
+    assert ip.Tiles.parse("64x64x32") == ip.Tiles()
+    for bad, message in (("64x48x32", "n=48: must be a power of two"), ("8x64x32", "m=8"),
+                         ("64x64x32x3", "warps=3: valid are"), ("64by64", "expected MxNxK")):
+        with pytest.raises(ValueError, match=message):
+            ip.Tiles.parse(bad)

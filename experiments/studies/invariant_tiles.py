@@ -1,0 +1,105 @@
+"""Which tile shape the batch-invariant product kernel should use on this device.
+
+  python -m experiments.studies.invariant_tiles --tiles=64x64x32x4,32x64x32x4,16x64x64x4 --batch=512 \
+      --out=results/invariant_tiles.json
+
+`--matmul_precision=bf16_invariant` runs every product of the target with one kernel
+configuration (`heisd_jax.invariant_products.Tiles`: output tile M x N, K block, warps,
+pipeline stages). Any one configuration keeps a row's bits whatever the batch; they differ in
+speed, and the best one is the device's answer, not the code's. For XLA's own bf16 numerics
+(the baseline, in the same run) and for each configuration, with the shipped target's weights
+on random observations: the prefill and one cached single-token pass (AR's step), at batch 1
+and at --batch, each as its in-graph marginal cost (`timing.in_graph_ms`, what the cost tables
+hold), and whether batch 1's logits equal row 0's in the batch, for both (every configuration
+must give that; XLA's numerics do not on a GPU).
+
+Off a GPU the products run XLA's dot (the kernel needs one), so every configuration computes
+alike there; the study is for GPUs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA CPU flags before JAX starts)
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from envs import language
+from experiments import cli
+from heisd_jax import checkpoint, invariant_products, results_io, timing, vla
+from heisd_jax.harness import methods
+from heisd_jax.observation import Observation
+
+FLAGS = flags.FLAGS
+cli.define_paths("checkpoint")
+flags.DEFINE_list("tiles", ["64x64x32x4", "32x64x32x4", "16x64x64x4", "64x128x32x4", "64x64x64x4"],
+                  "Kernel configurations, each MxNxK[xWARPS[xSTAGES]] of powers of two >= 16.")
+flags.DEFINE_integer("batch", 512, "The large batch (the evaluator's envs).")
+flags.DEFINE_string("out", "results/invariant_tiles.json", "Results JSON.")
+
+
+def random_obs(cfg: vla.VLAConfig, batch: int) -> Observation:
+    k1, k2, k3 = jax.random.split(jax.random.PRNGKey(0), 3)
+    return Observation(image=jax.random.randint(k1, (batch, *cfg.image_shape), 0, 256).astype(jnp.uint8),
+                       instruction=jax.random.randint(k2, (batch, cfg.text_len), 1, cfg.text_vocab),
+                       proprio=jax.random.normal(k3, (batch, cfg.proprio_dim)))
+
+
+def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
+    """The four pieces' ms and the two invariance checks, for cfg's numerics, traced now."""
+    prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
+
+    def step(p, cache, tok):
+        b = tok.shape[0]
+        return vla.cached_pass(p, cfg, cache, tok, jnp.zeros((b, 1), jnp.int32), jnp.ones((b, 1, 1), bool))[0]
+
+    step = jax.jit(step)
+    row = {"label": label}
+    for name, o in (("1", jax.tree.map(lambda x: x[:1], obs)), ("batch", obs)):
+        logits, _, cache = prefill(params, o)
+        tok = (jnp.argmax(vla.action_logits(cfg, logits), -1) + cfg.first_action_id)[:, None]
+        row[f"prefill_ms_{name}"] = timing.in_graph_ms(lambda p, o: vla.prefill(p, cfg, o)[0], (params, o))
+        row[f"step_ms_{name}"] = timing.in_graph_ms(step, (params, cache, tok))
+        row[f"_logits_{name}"] = (np.asarray(logits[:1]), np.asarray(step(params, cache, tok)[:1]))
+    (p1, s1), (pb, sb) = row.pop("_logits_1"), row.pop("_logits_batch")
+    row["prefill_invariant"], row["step_invariant"] = bool((p1 == pb).all()), bool((s1 == sb).all())
+    print(f"{label:<22} prefill {row['prefill_ms_1']:.3f} / {row['prefill_ms_batch']:.3f} ms  "
+          f"step {row['step_ms_1']:.3f} / {row['step_ms_batch']:.3f} ms  (batch 1 / {obs.image.shape[0]})  "
+          f"invariant: prefill {row['prefill_invariant']}, step {row['step_invariant']}", flush=True)
+    return row
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        configs = [invariant_products.Tiles.parse(t) for t in FLAGS.tiles]
+    except ValueError as e:
+        raise app.UsageError(f"--tiles: {e}") from e
+    if FLAGS.batch < 2:
+        raise app.UsageError(f"--batch must be >= 2, got {FLAGS.batch}")
+    try:
+        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
+    cfg, params = methods.in_dtype(cfg, "bfloat16", params)
+    obs = random_obs(cfg, FLAGS.batch)
+    rows = [measure(cfg, params, obs, "xla bf16")]
+    inv = dataclasses.replace(cfg, matmul_precision="bf16_invariant")
+    for tiles, text in zip(configs, FLAGS.tiles):
+        with invariant_products.tile_shape(tiles):  # read while each function is traced, inside
+            rows.append({**measure(inv, params, obs, f"bf16_invariant {text}"), "tiles": dataclasses.asdict(tiles)})
+    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+    results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "batch": FLAGS.batch,
+                                             "rows": rows})
+    print(f"results: {os.path.abspath(FLAGS.out)}")
+
+
+if __name__ == "__main__":
+    cli.run(main)
