@@ -328,7 +328,8 @@ class DecoderBlock(nn.Module):
         # x [B, T, D]; layer_k/v [B, S, H, Dh] or None (no cache); rotary: `rotary_angles`;
         # cache_mask [B, T, S] (which cache slots each token sees; None without a cache);
         # block_mask [B, T, T] (which of the block's tokens each sees, itself included);
-        # ancestor_slots [B, T, S] or None: `ancestor_slots`, for `_attend_at_ar_slots`.
+        # ancestor_slots [B, T, S] or None: `ancestor_slots`, for `_attend_at_ar_slots` (without a
+        # cache: of the block after the prompt, the pass's last T' tokens).
         cfg = self.cfg
         b, t, d = x.shape
         hd = d // cfg.n_heads
@@ -349,6 +350,13 @@ class DecoderBlock(nn.Module):
         if layer_k is None:
             attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
             out = jnp.einsum("bhts,bshd->bthd", attn, v)
+            if ancestor_slots is not None:  # a block after the prompt, as AR's passes over the prefill's cache
+                p, slots = t - ancestor_slots.shape[1], ancestor_slots.shape[2]
+                pad = ((0, 0), (0, slots - p), (0, 0), (0, 0))
+                seen = jnp.pad(block_mask[:, p:, :p], ((0, 0), (0, 0), (0, slots - p)))
+                block = _attend_at_ar_slots(q[:, p:], k[:, p:], v[:, p:], jnp.pad(k[:, :p], pad), jnp.pad(v[:, :p], pad),
+                                            seen, ancestor_slots, scale, cfg.dtype)
+                out = jnp.concatenate([out[:, :p], block], 1)
         elif ancestor_slots is not None:
             out = _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, ancestor_slots, scale, cfg.dtype)
         else:  # one softmax over [cache slots, block tokens]
@@ -479,9 +487,15 @@ class VLA(nn.Module):
         keys/values [L, B, T, H, Dh]."""
         ck, cv = (None, None) if cache is None else (cache.k, cache.v)
         rotary = rotary_angles(self.cfg, positions)
-        slots = None  # a pass of several tokens against a cache attends as AR's would under invariant numerics
-        if cache is not None and x.shape[1] > 1 and self.cfg.matmul_precision == "bf16_invariant":
-            slots = ancestor_slots(positions, block_mask, cache.k.shape[2])
+        # Under invariant numerics a pass of several tokens against a cache, or of a block after
+        # the prompt, attends as AR's single-token passes would (`_attend_at_ar_slots`).
+        slots, cfg = None, self.cfg
+        if cfg.matmul_precision == "bf16_invariant":
+            p = cfg.prompt_len
+            if cache is not None and x.shape[1] > 1:
+                slots = ancestor_slots(positions, block_mask, cache.k.shape[2])
+            elif cache is None and x.shape[1] > p:
+                slots = ancestor_slots(positions[:, p:], block_mask[:, p:, p:], cfg.cache_slots)
         if self.cfg.per_layer:
             kv = []
             for i, layer in enumerate(self.layers):

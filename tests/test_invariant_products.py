@@ -95,9 +95,11 @@ def test_the_models_bf16_invariant_numerics_give_a_state_the_same_logits_alone_a
 
 
 def test_a_tree_pass_gives_each_token_the_logits_of_ars_single_token_passes_bit_for_bit():
-    """Under bf16_invariant a pass of several tokens attends at AR's slots (`vla.ancestor_slots`),
-    so strict verification is token-identical to AR in bf16: the tree [a0 -> a1 -> a2, a0 -> x]
-    in one pass against AR committing a0, a1 one pass at a time (and x after a0)."""
+    """Under bf16_invariant a pass of several tokens against the cache, or after the prompt in the
+    prefill, attends at AR's slots (`vla.ancestor_slots`), so strict verification is
+    token-identical to AR in bf16: the tree [a0 -> a1 -> a2, a0 -> x] in one pass (and fused
+    into the prefill, as retrieval verifies) against AR committing a0, a1 one pass at a time
+    (and x after a0)."""
     cfg = dataclasses.replace(CFG, dtype="bfloat16", matmul_precision="bf16_invariant")
     params = jax.tree.map(lambda p: p.astype(jnp.bfloat16), vla.init_params(CFG, jax.random.PRNGKey(5)))
     o = obs(seed=3, batch=2)
@@ -123,8 +125,11 @@ def test_a_tree_pass_gives_each_token_the_logits_of_ars_single_token_passes_bit_
     depth = jnp.asarray(np.broadcast_to([0, 1, 2, 1], (2, 4)), jnp.int32)
     tree = run(lambda p, c, t, d, m: vla.cached_pass(p, cfg, c, t, d, m)[0])(
         params, cache, ids, depth, jnp.asarray(np.broadcast_to(intra, (2, 4, 4))))
+    fused = run(lambda p, o, t, d, m: vla.prefill_with_block(p, cfg, o, t, d, m)[3])(  # retrieval's fused verification
+        params, o, ids, depth, jnp.asarray(np.broadcast_to(intra, (2, 4, 4))))
     for i, want in enumerate([*ar, x_after_a0]):
         np.testing.assert_array_equal(np.asarray(tree[:, i]), np.asarray(want), err_msg=f"tree token {i}")
+        np.testing.assert_array_equal(np.asarray(fused[:, i]), np.asarray(want), err_msg=f"prefill block token {i}")
 
 
 def test_another_tile_shape_computes_the_same_product_and_bad_ones_are_refused():
