@@ -388,8 +388,9 @@ def _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, src, scale, dtype
     own. With every product and sum in one order per element whatever its shape
     (`invariant_products`), each token of a tree then gets the bits AR's pass gives it, so
     strict verification is token-identical to AR in bfloat16 too. Costs a per-token copy of the
-    layer's values ([B, T, S, H, Dh]); used by passes of more than one token against a cache
-    under `matmul_precision="bf16_invariant"`.
+    layer's values ([B, T, S, H, Dh]); used under `matmul_precision="bf16_invariant"` by passes of
+    more than one token against a cache, and by a block after the prompt in the prefill (its
+    "cache" then the pass's own prompt keys and values, as the prefill would store them).
     q, k, v [B, T, H, Dh]; layer_k/v [B, S, H, Dh]; cache_mask [B, T, S]; src [B, T, S]."""
     from_block = src >= 0  # [B, T, S]
     at = jnp.maximum(src, 0)
