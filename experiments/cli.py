@@ -158,6 +158,19 @@ def task_list(suites: str, names: list[str] | None = None) -> list:
         raise app.UsageError(str(e)) from e
 
 
+def load_target(path: str):
+    """(params, cfg) of the target checkpoint at path, with the instruction vocabulary's check; a
+    missing or unreadable checkpoint raised as the `app.UsageError` that names it."""
+    from envs import language  # noqa: PLC0415
+    from heisd_jax import checkpoint  # noqa: PLC0415
+
+    try:
+        params, cfg, _, _ = checkpoint.load_policy(path, text_vocab=language.VOCAB)
+    except (ValueError, FileNotFoundError) as e:
+        raise app.UsageError(str(e)) from e
+    return params, cfg
+
+
 def failure_weights(path: str) -> list[str]:
     """`envs.tasks.failure_weights` of a policy's per-task success rates, read from an
     evaluation's results JSON (experiments.evaluate --out) or from a DAgger dataset

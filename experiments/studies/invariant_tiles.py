@@ -30,9 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs import language
 from experiments import cli
-from heisd_jax import checkpoint, invariant_products, results_io, timing, vla
+from heisd_jax import invariant_products, results_io, timing, vla
 from heisd_jax.harness import methods
 from heisd_jax.observation import Observation
 
@@ -84,10 +83,7 @@ def main(argv):
         raise app.UsageError(f"--tiles: {e}") from e
     if FLAGS.batch < 2:
         raise app.UsageError(f"--batch must be >= 2, got {FLAGS.batch}")
-    try:
-        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-    except (ValueError, FileNotFoundError) as e:
-        raise app.UsageError(str(e)) from e
+    params, cfg = cli.load_target(FLAGS.checkpoint)
     cfg, params = methods.in_dtype(cfg, "bfloat16", params)
     obs = random_obs(cfg, FLAGS.batch)
     rows = [measure(cfg, params, obs, "xla bf16")]

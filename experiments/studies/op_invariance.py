@@ -40,9 +40,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from envs import language
 from experiments import cli
-from heisd_jax import checkpoint, results_io, vla
+from heisd_jax import results_io, vla
 from heisd_jax.harness import methods
 from heisd_jax.observation import Observation
 
@@ -180,10 +179,7 @@ def main(argv):
         raise app.UsageError(f"--numerics {unknown}: valid are {', '.join(NUMERICS)}")
     if FLAGS.batch < 2:
         raise app.UsageError(f"--batch must be >= 2, got {FLAGS.batch}")
-    try:
-        params, cfg, _, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
-    except (ValueError, FileNotFoundError) as e:
-        raise app.UsageError(str(e)) from e
+    params, cfg = cli.load_target(FLAGS.checkpoint)
     rows = [r for n in FLAGS.numerics for r in measure(cfg, params, n, FLAGS.batch)]
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "rows": rows})
