@@ -46,9 +46,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import pallas as pl
+from jax.experimental.pallas import triton as plgpu
 
 from heisd_jax import jaxpr_rewrite
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,8 +155,8 @@ def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_sh
             index[axis] = i
         index[spec.free], index[spec.contract] = free_slice, k_slice
         if spec.free < spec.contract:
-            return _load(ref, index, free_ok[:, None] & k_ok[None, :])
-        return _load(ref, index, k_ok[:, None] & free_ok[None, :]).T
+            return plgpu.load(ref.at[tuple(index)], mask=free_ok[:, None] & k_ok[None, :], other=0)
+        return plgpu.load(ref.at[tuple(index)], mask=k_ok[:, None] & free_ok[None, :], other=0).T
 
     def body(i, acc):
         ks = i * bk + jnp.arange(bk)
@@ -165,24 +165,9 @@ def _product_kernel(x_ref, y_ref, o_ref, *, xs: _Operand, ys: _Operand, batch_sh
         b = tile(y_ref, ys, pl.ds(pid_n * bn, bn), k_slice, cols < n, ks < k)
         return acc + jnp.dot(a.astype(jnp.bfloat16), b.T.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
 
-    acc = jax.lax.fori_loop(0, -(-k // bk), body, jnp.zeros((bm, bn), jnp.float32))
+    acc = jax.lax.fori_loop(0, _round_up(k, bk) // bk, body, jnp.zeros((bm, bn), jnp.float32))
     out = o_ref.at[pid_b, pl.ds(pid_m * bm, bm), pl.ds(pid_n * bn, bn)]
-    _store(out, acc.astype(o_ref.dtype), (rows < m)[:, None] & (cols < n)[None, :])
-
-
-def _load(ref, index, mask):
-    from jax.experimental.pallas import triton as plgpu
-    return plgpu.load(ref.at[tuple(index)], mask=mask, other=0)
-
-
-def _store(ref, value, mask):
-    from jax.experimental.pallas import triton as plgpu
-    plgpu.store(ref, value, mask=mask)
-
-
-def _triton_params(tiles: Tiles):
-    from jax.experimental.pallas import triton as plgpu  # the GPU backend's parameters only where used
-    return plgpu.CompilerParams(num_warps=tiles.warps, num_stages=tiles.stages)
+    plgpu.store(out, acc.astype(o_ref.dtype), mask=(rows < m)[:, None] & (cols < n)[None, :])
 
 
 def _whole_tiles(x: jnp.ndarray, spec: _Operand, free_block: int, k_block: int) -> jnp.ndarray:
@@ -194,16 +179,14 @@ def _whole_tiles(x: jnp.ndarray, spec: _Operand, free_block: int, k_block: int) 
     return jnp.pad(x, pad)
 
 
-def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interpret: bool = False, use_kernel=None):
+def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interpret: bool = False):
     """`jax.lax.dot_general` on bfloat16 operands with float32 accumulation, batch-invariant:
     on a GPU (or when `interpret`), one Pallas program per output tile of each batch element,
     reading the operands where they lie (strided: no transposes for the attention's einsums);
     elsewhere XLA's product of the same operands."""
     (lc, rc), (lb, rb) = dimension_numbers
     out_dtype = jnp.dtype(preferred_element_type or jnp.result_type(lhs, rhs))
-    if use_kernel is None:
-        use_kernel = interpret or jax.default_backend() == "gpu"
-    if not use_kernel:
+    if not (interpret or jax.default_backend() == "gpu"):
         out = jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
                                   preferred_element_type=jnp.float32)
         return out.astype(out_dtype)
@@ -220,7 +203,8 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
         x, y = _whole_tiles(x, xs, tiles.m, tiles.k), _whole_tiles(y, ys, tiles.n, tiles.k)
     bsz = int(np.prod(batch_shape))
     mp, np_ = x.shape[xs.free], y.shape[ys.free]
-    kwargs = {} if interpret else {"compiler_params": _triton_params(tiles)}
+    kwargs = {} if interpret else {"compiler_params": plgpu.CompilerParams(num_warps=tiles.warps,
+                                                                           num_stages=tiles.stages)}
     out = pl.pallas_call(
         functools.partial(_product_kernel, xs=xs, ys=ys, batch_shape=batch_shape or (1,), m=m, n=n, k=k,
                           tiles=tiles),

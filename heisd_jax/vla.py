@@ -84,6 +84,12 @@ class VLAConfig:
     # (slicing a layer out of stacked arrays makes XLA copy it: ~2x a 7B pass).
     per_layer: bool = False
 
+    @property
+    def batch_invariant(self) -> bool:
+        """Batch-invariant numerics (`invariant_products`; the model's own share: the vision
+        softmax in float32, multi-token passes attending at AR's slots)."""
+        return self.matmul_precision == "bf16_invariant"
+
     def architecture(self) -> dict:
         """The fields that fix the function and the parameters' shapes: all but the numerics
         (`NUMERICS`), which a caller may change for one run (a drafter trained for a target
@@ -177,7 +183,7 @@ def at_config_precision(fn):
             raise ValueError(f'matmul_precision "{cfg.matmul_precision}" needs a GPU (the backend is '
                              f"{jax.default_backend()}); valid here: "
                              f"{', '.join(p for p in MATMUL_PRECISIONS if p not in _GPU_ONLY)}")
-        if cfg.matmul_precision == "bf16_invariant":
+        if cfg.batch_invariant:
             return invariant_products.batch_invariant(fn)(params, cfg, *args, **kwargs)
         rounded = float32 and cfg.matmul_precision == "tf32_rounded"
         if rounded and not on_gpu:
@@ -419,9 +425,6 @@ class VisionEncoder(nn.Module):
     def __call__(self, image):
         cfg = self.cfg
         w, eps = cfg.vision_width, cfg.vision_norm_eps
-        # Batch-invariant numerics take the softmax in float32, as the decoder's is: a bf16
-        # softmax's intermediates round differently as XLA fuses them differently per batch size.
-        invariant = cfg.matmul_precision == "bf16_invariant"
         x = image.astype(jnp.float32) / 127.5 - 1.0
         x = nn.Conv(w, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype, name="patchify")(x)
         b = x.shape[0]
@@ -433,8 +436,10 @@ class VisionEncoder(nn.Module):
         x = x + self.param("pos", nn.initializers.normal(0.02), (1, cfg.image_tokens, w)).astype(x.dtype)
         for i in range(cfg.vision_layers):
             h = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"norm{i}")(x)
+            # Batch-invariant numerics take this softmax in float32, as the decoder's is: a bf16
+            # softmax's intermediates round as XLA fuses them, which differs per batch size.
             x = x + nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=cfg.dtype, name=f"attn{i}",
-                                                    force_fp32_for_softmax=invariant)(h, h, mask=mask)
+                                                    force_fp32_for_softmax=cfg.batch_invariant)(h, h, mask=mask)
             x = x + SwiGLU(cfg.vision_mlp, cfg.dtype, name=f"mlp{i}")(
                 nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
         x = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name="out_norm")(x)
@@ -491,13 +496,13 @@ class VLA(nn.Module):
         # Under invariant numerics a pass of several tokens against a cache, or of a block after
         # the prompt, attends as AR's single-token passes would (`_attend_at_ar_slots`).
         slots, cfg = None, self.cfg
-        if cfg.matmul_precision == "bf16_invariant":
+        if cfg.batch_invariant:
             p = cfg.prompt_len
             if cache is not None and x.shape[1] > 1:
                 slots = ancestor_slots(positions, block_mask, cache.k.shape[2])
             elif cache is None and x.shape[1] > p:
                 slots = ancestor_slots(positions[:, p:], block_mask[:, p:, p:], cfg.cache_slots)
-        if self.cfg.per_layer:
+        if cfg.per_layer:
             kv = []
             for i, layer in enumerate(self.layers):
                 x, out = layer(x, None if ck is None else ck[i], None if cv is None else cv[i], rotary, cache_mask,
