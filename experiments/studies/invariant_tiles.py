@@ -11,7 +11,10 @@ speed, and the best one is the device's answer, not the code's. For XLA's own bf
 on random observations: the prefill and one cached single-token pass (AR's step), at batch 1
 and at --batch, each as its in-graph marginal cost (`timing.in_graph_ms`, what the cost tables
 hold), and whether batch 1's logits equal row 0's in the batch, for both (every configuration
-must give that; XLA's numerics do not on a GPU).
+must give that; XLA's numerics do not on a GPU). Each configuration's logits are also compared
+with the first configuration's (`same_bits_as_first`): where configurations that share a K
+block give the same bits, a product's tile shape could follow its shape without breaking
+invariance.
 
 Off a GPU the products run XLA's dot (the kernel needs one), so every configuration computes
 alike there; the study is for GPUs.
@@ -37,7 +40,8 @@ from heisd_jax.observation import Observation
 
 FLAGS = flags.FLAGS
 cli.define_paths("checkpoint")
-flags.DEFINE_list("tiles", ["64x64x32x4", "32x64x32x4", "16x64x64x4", "64x128x32x4", "64x64x64x4"],
+flags.DEFINE_list("tiles", ["64x64x32x4", "16x64x32x4", "32x64x32x4", "64x128x32x4", "128x64x32x4", "128x128x32x8",
+                            "128x128x32x4", "64x64x64x4", "128x128x64x8"],
                   "Kernel configurations, each MxNxK[xWARPS[xSTAGES]] of powers of two >= 16.")
 flags.DEFINE_integer("batch", 512, "The large batch (the evaluator's envs).")
 flags.DEFINE_string("out", "results/invariant_tiles.json", "Results JSON.")
@@ -66,7 +70,7 @@ def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
         row[f"prefill_ms_{name}"] = timing.in_graph_ms(lambda p, o: vla.prefill(p, cfg, o)[0], (params, o))
         row[f"step_ms_{name}"] = timing.in_graph_ms(step, (params, cache, tok))
         row[f"_logits_{name}"] = (np.asarray(logits[:1]), np.asarray(step(params, cache, tok)[:1]))
-    (p1, s1), (pb, sb) = row.pop("_logits_1"), row.pop("_logits_batch")
+    (p1, s1), (pb, sb) = row["_logits_1"], row.pop("_logits_batch")
     row["prefill_invariant"], row["step_invariant"] = bool((p1 == pb).all()), bool((s1 == sb).all())
     print(f"{label:<22} prefill {row['prefill_ms_1']:.3f} / {row['prefill_ms_batch']:.3f} ms  "
           f"step {row['step_ms_1']:.3f} / {row['step_ms_batch']:.3f} ms  (batch 1 / {obs.image.shape[0]})  "
@@ -87,10 +91,17 @@ def main(argv):
     cfg, params = methods.in_dtype(cfg, "bfloat16", params)
     obs = random_obs(cfg, FLAGS.batch)
     rows = [measure(cfg, params, obs, "xla bf16")]
+    rows[0].pop("_logits_1")
     inv = dataclasses.replace(cfg, matmul_precision="bf16_invariant")
+    first = None
     for tiles, text in zip(configs, FLAGS.tiles):
         with invariant_products.tile_shape(tiles):  # read while each function is traced, inside
-            rows.append({**measure(inv, params, obs, f"bf16_invariant {text}"), "tiles": dataclasses.asdict(tiles)})
+            row = {**measure(inv, params, obs, f"bf16_invariant {text}"), "tiles": dataclasses.asdict(tiles)}
+        logits = row.pop("_logits_1")
+        first = logits if first is None else first
+        row["same_bits_as_first"] = all(bool((a == b).all()) for a, b in zip(logits, first))
+        print(f"{'':<22} batch 1's logits equal to {FLAGS.tiles[0]}'s: {row['same_bits_as_first']}", flush=True)
+        rows.append(row)
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "batch": FLAGS.batch,
                                              "rows": rows})
