@@ -218,27 +218,36 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
     return out.reshape(out_shape)
 
 
+# A sum over more values than this is added one tree level per kernel while its levels are wide.
+_LEVEL_KERNELS_ABOVE = 1 << 18
+_FUSED_WIDTH = 32
+
+
 def pairwise_sum(x: jnp.ndarray, axes) -> jnp.ndarray:
     """jnp.sum(x, axes) as a pairwise tree of float32 additions (the reduced axes flattened,
     zero-padded to a power of two, halves added until one is left), in x's dtype. Each output
     element's additions are fixed by the number of values it sums alone.
 
-    The reduced values are first moved to the leading axis, in a copy of their own (the
-    barrier keeps XLA from fusing the transpose into the tree): then the one fused loop that
-    adds the tree reads neighbouring outputs' values from neighbouring addresses. Fused over
-    the trailing axis instead, each output's loop strides through its own row, uncoalesced,
-    which made these sums the largest kernel of a batch-512 prefill."""
+    XLA fuses a whole tree into one loop in which each output strides through its own values,
+    uncoalesced: at a batch-512 prefill's attention, the largest kernel of the pass. So a large
+    sum (over `_LEVEL_KERNELS_ABOVE` values in all) materialises each level wider than
+    `_FUSED_WIDTH` (an optimisation barrier), where neighbouring threads add neighbouring
+    values; the narrow rest is one fusion. Where the kernels split the tree does not change a
+    single addition, so every shape gets the same bits, and small sums (batch 1) keep one kernel."""
     axes = tuple(sorted(a % x.ndim for a in axes))
     kept = [d for d in range(x.ndim) if d not in axes]
     kept_shape = [x.shape[d] for d in kept]
     n = int(np.prod([x.shape[d] for d in axes]))
-    v = jax.lax.optimization_barrier(jnp.transpose(x, (*axes, *kept)).reshape(n, *kept_shape))
+    v = jnp.transpose(x, (*kept, *axes)).reshape(*kept_shape, n).astype(jnp.float32)
     width = 1 << max(n - 1, 0).bit_length()
-    v = jnp.pad(v.astype(jnp.float32), [(0, width - n)] + [(0, 0)] * len(kept_shape))
-    while v.shape[0] > 1:
-        half = v.shape[0] // 2
-        v = v[:half] + v[half:]
-    return v[0].astype(x.dtype)
+    v = jnp.pad(v, [(0, 0)] * len(kept_shape) + [(0, width - n)])
+    split = v.size > _LEVEL_KERNELS_ABOVE
+    while v.shape[-1] > 1:
+        half = v.shape[-1] // 2
+        v = v[..., :half] + v[..., half:]
+        if split and half > _FUSED_WIDTH:
+            v = jax.lax.optimization_barrier(v)
+    return v[..., 0].astype(x.dtype)
 
 
 def _is_float(x) -> bool:
