@@ -64,11 +64,18 @@ def test_sums_are_pairwise_trees_of_the_values():
     got = ip.pairwise_sum(x, (1, 2))
     np.testing.assert_allclose(np.asarray(got), np.asarray(x, np.float64).sum((1, 2)), rtol=1e-5)
     assert ip.pairwise_sum(x, (1,)).shape == (3, 5) and ip.pairwise_sum(x.astype(jnp.bfloat16), (1,)).dtype == jnp.bfloat16
-    # the tree itself, bit for bit: zero-padded to 2048 values, the halves added until one is left
-    tree = np.pad(np.asarray(x).reshape(3, 1500), ((0, 0), (0, 548)))
-    while tree.shape[1] > 1:
-        tree = tree[:, :tree.shape[1] // 2] + tree[:, tree.shape[1] // 2:]
-    np.testing.assert_array_equal(np.asarray(got), tree[:, 0])
+    # the tree itself, bit for bit: zero-padded to a power of two, the halves added until one is
+    # left; a sum too large for one fused kernel (its wide levels one kernel each) adds the same
+    def tree(v):
+        v = np.pad(v, ((0, 0), (0, (1 << (v.shape[1] - 1).bit_length()) - v.shape[1])))
+        while v.shape[1] > 1:
+            v = v[:, :v.shape[1] // 2] + v[:, v.shape[1] // 2:]
+        return v[:, 0]
+
+    np.testing.assert_array_equal(np.asarray(got), tree(np.asarray(x).reshape(3, 1500)))
+    large = np.asarray(_random((1200, 300), 11, jnp.float32))
+    assert large.size > ip._LEVEL_KERNELS_ABOVE
+    np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: ip.pairwise_sum(v, (1,)))(large)), tree(large))
     # the rewritten softmax sums with the tree: a row alone and in a batch agree bit for bit
     soft = jax.jit(ip.batch_invariant(lambda v: jax.nn.softmax(v, -1)))
     np.testing.assert_array_equal(np.asarray(soft(x[:, :, 0])[:1]), np.asarray(soft(x[:1, :, 0])))
