@@ -25,7 +25,6 @@ names to the program. On the CPU the device timelines are the XLA threads.
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import jax
@@ -34,7 +33,7 @@ from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import language
-from heisd_jax import budget, checkpoint, cost_model, hybrid, target_model, timing, vla
+from heisd_jax import budget, checkpoint, cost_model, hybrid, results_io, target_model, timing, vla
 from heisd_jax.harness import methods
 from experiments import cli
 
@@ -128,8 +127,8 @@ def main(argv):
                   f"+ {by['zero_round'] - by['prefill_blk']:.2f} ms outside the target pass (AR {by['ar']:.2f} ms)",
                   flush=True)
         if FLAGS.out:
-            Path(FLAGS.out).write_text(json.dumps({"device": jax.devices()[0].device_kind, "method": FLAGS.method, "tree": FLAGS.tree,
-                                                   "rows": results}, indent=1))
+            results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
+                                                     "method": FLAGS.method, "tree": FLAGS.tree, "rows": results})
 
 
 if __name__ == "__main__":
