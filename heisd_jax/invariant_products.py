@@ -218,8 +218,10 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
     return out.reshape(out_shape)
 
 
-# A sum over more values than this is added one tree level per kernel while its levels are wide.
-_LEVEL_KERNELS_ABOVE = 1 << 18
+# A sum over more values than this (8 MiB of float32; a batch-16 prefill's attention is more, batch
+# 1's passes less) adds its wide tree levels one kernel each. Below it the launches are estimated
+# to cost more than the uncoalesced reads they save; the threshold is not tuned.
+_LEVEL_KERNELS_ABOVE = 1 << 21
 _FUSED_WIDTH = 32
 
 

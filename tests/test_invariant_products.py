@@ -73,7 +73,7 @@ def test_sums_are_pairwise_trees_of_the_values():
         return v[:, 0]
 
     np.testing.assert_array_equal(np.asarray(got), tree(np.asarray(x).reshape(3, 1500)))
-    large = np.asarray(_random((1200, 300), 11, jnp.float32))
+    large = np.asarray(_random((7000, 300), 11, jnp.float32))
     assert large.size > ip._LEVEL_KERNELS_ABOVE
     np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: ip.pairwise_sum(v, (1,)))(large)), tree(large))
     # the rewritten softmax sums with the tree: a row alone and in a batch agree bit for bit
