@@ -353,16 +353,20 @@ class DecoderBlock(nn.Module):
             logits = jax.lax.optimization_barrier(logits)
         logits = logits * scale
         logits = jnp.where(block_mask[:, None], logits, NEG_INF)
-        if layer_k is None:
+        if layer_k is None and ancestor_slots is not None:
+            # The prompt attends within itself; a block after it, as AR's passes over the
+            # prefill's cache (the invariant numerics' products and sums give the prompt's rows
+            # the same bits computed apart).
+            p, slots = t - ancestor_slots.shape[1], ancestor_slots.shape[2]
+            attn = jax.nn.softmax(logits[:, :, :p, :p], -1).astype(cfg.dtype)
+            pad = ((0, 0), (0, slots - p), (0, 0), (0, 0))
+            seen = jnp.pad(block_mask[:, p:, :p], ((0, 0), (0, 0), (0, slots - p)))
+            block = _attend_at_ar_slots(q[:, p:], k[:, p:], v[:, p:], jnp.pad(k[:, :p], pad), jnp.pad(v[:, :p], pad),
+                                        seen, ancestor_slots, scale, cfg.dtype)
+            out = jnp.concatenate([jnp.einsum("bhts,bshd->bthd", attn, v[:, :p]), block], 1)
+        elif layer_k is None:
             attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
             out = jnp.einsum("bhts,bshd->bthd", attn, v)
-            if ancestor_slots is not None:  # a block after the prompt, as AR's passes over the prefill's cache
-                p, slots = t - ancestor_slots.shape[1], ancestor_slots.shape[2]
-                pad = ((0, 0), (0, slots - p), (0, 0), (0, 0))
-                seen = jnp.pad(block_mask[:, p:, :p], ((0, 0), (0, 0), (0, slots - p)))
-                block = _attend_at_ar_slots(q[:, p:], k[:, p:], v[:, p:], jnp.pad(k[:, :p], pad), jnp.pad(v[:, :p], pad),
-                                            seen, ancestor_slots, scale, cfg.dtype)
-                out = jnp.concatenate([out[:, :p], block], 1)
         elif ancestor_slots is not None:
             out = _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, ancestor_slots, scale, cfg.dtype)
         else:  # one softmax over [cache slots, block tokens]
