@@ -96,6 +96,24 @@ def tile_shape(tiles: Tiles):
         _tiles.pop()
 
 
+SUMS = ("pairwise", "xla")
+_sums = ["pairwise"]
+
+
+@contextlib.contextmanager
+def sum_kind(kind: str):
+    """Sums traced inside are `kind`: "pairwise" (the default, `pairwise_sum`: one order by
+    construction) or "xla" (XLA's own float32 reduction, whose order its emitter picks from the
+    reduced length; batch-invariant only as far as measured: for the studies that measure it)."""
+    if kind not in SUMS:
+        raise ValueError(f"sum kind {kind!r}: valid are {', '.join(SUMS)}")
+    _sums.append(kind)
+    try:
+        yield
+    finally:
+        _sums.pop()
+
+
 def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
 
@@ -225,17 +243,18 @@ _LEVEL_KERNELS_ABOVE = 1 << 21
 _FUSED_WIDTH = 32
 
 
-def pairwise_sum(x: jnp.ndarray, axes) -> jnp.ndarray:
+def pairwise_sum(x: jnp.ndarray, axes, level_kernels_above: int | None = None) -> jnp.ndarray:
     """jnp.sum(x, axes) as a pairwise tree of float32 additions (the reduced axes flattened,
     zero-padded to a power of two, halves added until one is left), in x's dtype. Each output
     element's additions are fixed by the number of values it sums alone.
 
     XLA fuses a whole tree into one loop in which each output strides through its own values,
     uncoalesced: at a batch-512 prefill's attention, the largest kernel of the pass. So a large
-    sum (over `_LEVEL_KERNELS_ABOVE` values in all) materialises each level wider than
-    `_FUSED_WIDTH` (an optimisation barrier), where neighbouring threads add neighbouring
-    values; the narrow rest is one fusion. Where the kernels split the tree does not change a
-    single addition, so every shape gets the same bits, and small sums (batch 1) keep one kernel."""
+    sum (over `level_kernels_above` values in all, default `_LEVEL_KERNELS_ABOVE`) materialises
+    each level wider than `_FUSED_WIDTH` (an optimisation barrier), where neighbouring threads
+    add neighbouring values; the narrow rest is one fusion. Where the kernels split the tree
+    does not change a single addition, so every shape gets the same bits, and small sums (batch
+    1) keep one kernel (`experiments/studies/invariant_tiles.py` times both ways)."""
     axes = tuple(sorted(a % x.ndim for a in axes))
     kept = [d for d in range(x.ndim) if d not in axes]
     kept_shape = [x.shape[d] for d in kept]
@@ -243,7 +262,7 @@ def pairwise_sum(x: jnp.ndarray, axes) -> jnp.ndarray:
     v = jnp.transpose(x, (*kept, *axes)).reshape(*kept_shape, n).astype(jnp.float32)
     width = 1 << max(n - 1, 0).bit_length()
     v = jnp.pad(v, [(0, 0)] * len(kept_shape) + [(0, width - n)])
-    split = v.size > _LEVEL_KERNELS_ABOVE
+    split = v.size > (_LEVEL_KERNELS_ABOVE if level_kernels_above is None else level_kernels_above)
     while v.shape[-1] > 1:
         half = v.shape[-1] // 2
         v = v[..., :half] + v[..., half:]
@@ -271,6 +290,8 @@ def _sum_rule(invals, *, axes, **params):
     (x,) = invals
     if not _is_float(x) or not axes:
         return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
+    if _sums[-1] == "xla":
+        return jnp.sum(x.astype(jnp.float32), axes).astype(x.dtype)
     return pairwise_sum(x, axes)
 
 

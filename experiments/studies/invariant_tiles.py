@@ -16,6 +16,13 @@ with the first configuration's (`same_bits_as_first`): where configurations that
 block give the same bits, a product's tile shape could follow its shape without breaking
 invariance.
 
+It also times the sums those numerics use (`invariant_products.pairwise_sum`) at the attention
+softmax's shape [B, heads, prompt, prompt] for B = 1, 16 and --batch: the tree fused into one
+kernel, its wide levels one kernel each, and XLA's own (not invariant by construction) sum, and
+checks that the two trees give the same bits; and, with the first configuration, the whole
+numerics with XLA's sums in place of the trees (`invariant_products.sum_kind("xla")`), whose
+invariance is then only what the check measures.
+
 Off a GPU the products run XLA's dot (the kernel needs one), so every configuration computes
 alike there; the study is for GPUs.
 """
@@ -78,6 +85,23 @@ def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
     return row
 
 
+def time_sums(cfg: vla.VLAConfig, batch: int) -> list[dict]:
+    """The attention softmax's sum, three ways, at batch 1, 16 and `batch`."""
+    rows = []
+    for b in sorted({1, 16, batch}):
+        shape = (b, cfg.n_heads, cfg.prompt_len, cfg.prompt_len)
+        x = jax.random.uniform(jax.random.PRNGKey(b), shape, jnp.float32)
+        ways = {"fused": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=1 << 62),
+                "levels": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=0),
+                "xla": lambda v: jnp.sum(v, 3)}
+        row = {"shape": list(shape), **{f"{k}_ms": timing.in_graph_ms(f, (x,)) for k, f in ways.items()}}
+        row["trees_equal"] = bool((jax.jit(ways["fused"])(x) == jax.jit(ways["levels"])(x)).all())
+        print(f"sum over {shape}: tree in one kernel {row['fused_ms']:.3f} ms, wide levels apart "
+              f"{row['levels_ms']:.3f} ms, XLA's {row['xla_ms']:.3f} ms; trees equal: {row['trees_equal']}", flush=True)
+        rows.append(row)
+    return rows
+
+
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -90,6 +114,7 @@ def main(argv):
     params, cfg = cli.load_target(FLAGS.checkpoint)
     cfg, params = methods.in_dtype(cfg, "bfloat16", params)
     obs = random_obs(cfg, FLAGS.batch)
+    sums = time_sums(cfg, FLAGS.batch)
     rows = [measure(cfg, params, obs, "xla bf16")]
     rows[0].pop("_logits_1")
     inv = dataclasses.replace(cfg, matmul_precision="bf16_invariant")
@@ -102,9 +127,14 @@ def main(argv):
         row["same_bits_as_first"] = all(bool((a == b).all()) for a, b in zip(logits, first))
         print(f"{'':<22} batch 1's logits equal to {FLAGS.tiles[0]}'s: {row['same_bits_as_first']}", flush=True)
         rows.append(row)
+    with invariant_products.tile_shape(configs[0]), invariant_products.sum_kind("xla"):
+        row = {**measure(inv, params, obs, f"bf16_invariant {FLAGS.tiles[0]}, XLA sums"),
+               "tiles": dataclasses.asdict(configs[0]), "sums": "xla"}
+    row.pop("_logits_1")
+    rows.append(row)
     Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
     results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "batch": FLAGS.batch,
-                                             "rows": rows})
+                                             "sums": sums, "rows": rows})
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 
