@@ -96,15 +96,17 @@ def tile_shape(tiles: Tiles):
         _tiles.pop()
 
 
-SUMS = ("pairwise", "xla")
+SUMS = ("pairwise", "kernel", "xla")
 _sums = ["pairwise"]
 
 
 @contextlib.contextmanager
 def sum_kind(kind: str):
     """Sums traced inside are `kind`: "pairwise" (the default, `pairwise_sum`: one order by
-    construction) or "xla" (XLA's own float32 reduction, whose order its emitter picks from the
-    reduced length; batch-invariant only as far as measured: for the studies that measure it)."""
+    construction), "kernel" (`tree_sum_kernel`: the same tree, bit for bit, in one Pallas kernel;
+    on a GPU or interpreted, elsewhere "pairwise") or "xla" (XLA's own float32 reduction, whose
+    order its emitter picks; batch-invariant only as far as measured). The last two are for the
+    studies that measure them."""
     if kind not in SUMS:
         raise ValueError(f"sum kind {kind!r}: valid are {', '.join(SUMS)}")
     _sums.append(kind)
@@ -271,6 +273,54 @@ def pairwise_sum(x: jnp.ndarray, axes, level_kernels_above: int | None = None) -
     return v[..., 0].astype(x.dtype)
 
 
+_SUM_BLOCK = 4096  # values one program of `tree_sum_kernel` holds: rows x the tree's width
+_SUM_WIDEST = 16384  # a wider tree is `pairwise_sum`'s (one row would not fit a program's registers)
+
+
+def _tree_sum_kernel(x_ref, o_ref, *, rows: int, n: int, width: int, block_rows: int):
+    """One block of rows' sums: the row's values (zeros past n) halved `width` -> 1, each
+    level adding value j to value j + half, as `pairwise_sum` adds them. (Not a reshape and a
+    sum over the pairs: XLA, which runs the interpreter, merges consecutive reductions into one
+    and reorders it.)"""
+    pid = pl.program_id(0)
+    r = pid * block_rows + jnp.arange(block_rows)
+    c = jnp.arange(width)
+    v = plgpu.load(x_ref.at[pl.ds(pid * block_rows, block_rows), pl.ds(0, width)],
+                   mask=(r < rows)[:, None] & (c < n)[None, :], other=0).astype(jnp.float32)
+    while v.shape[1] > 1:
+        lo, hi = jnp.split(v, 2, axis=1)  # lax.split: Triton's reshape, transpose and split
+        v = lo + hi
+    plgpu.store(o_ref.at[pl.ds(pid * block_rows, block_rows)], v.reshape(block_rows).astype(o_ref.dtype),
+                mask=r < rows)
+
+
+def tree_sum_kernel(x: jnp.ndarray, axes, interpret: bool = False) -> jnp.ndarray:
+    """`pairwise_sum(x, axes)`, bit for bit, as one Pallas kernel: each program loads a block of
+    rows whole (neighbouring values at neighbouring addresses) and adds each row's tree in
+    registers, where XLA's fusion of the tree reads every row strided. Rows wider than
+    `_SUM_WIDEST` values fall back to `pairwise_sum`."""
+    axes = tuple(sorted(a % x.ndim for a in axes))
+    kept = [d for d in range(x.ndim) if d not in axes]
+    kept_shape = [x.shape[d] for d in kept]
+    n = int(np.prod([x.shape[d] for d in axes]))
+    rows = int(np.prod(kept_shape))
+    width = 1 << max(n - 1, 0).bit_length()
+    if width > _SUM_WIDEST or rows == 0:
+        return pairwise_sum(x, axes)
+    v = jnp.transpose(x, (*kept, *axes)).reshape(rows, n)
+    block_rows = max(1, _SUM_BLOCK // width)
+    if interpret:  # the interpreter clamps a slice past the end where the GPU's masked loads read nothing
+        v = jnp.pad(v, ((0, _round_up(rows, block_rows) - rows), (0, width - n)))
+    out = pl.pallas_call(
+        functools.partial(_tree_sum_kernel, rows=rows, n=n, width=width, block_rows=block_rows),
+        out_shape=jax.ShapeDtypeStruct((_round_up(rows, block_rows) if interpret else rows,), x.dtype),
+        grid=(-(-rows // block_rows),),
+        interpret=interpret,
+        **({} if interpret else {"compiler_params": plgpu.CompilerParams(num_warps=4, num_stages=1)}),
+    )(v)
+    return out[:rows].reshape(kept_shape)
+
+
 def _is_float(x) -> bool:
     return jnp.issubdtype(jnp.asarray(x).dtype, jnp.floating)
 
@@ -286,13 +336,18 @@ def _product_rule(interpret):
     return rule
 
 
-def _sum_rule(invals, *, axes, **params):
-    (x,) = invals
-    if not _is_float(x) or not axes:
-        return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
-    if _sums[-1] == "xla":
-        return jnp.sum(x.astype(jnp.float32), axes).astype(x.dtype)
-    return pairwise_sum(x, axes)
+def _sum_rule(interpret):
+    def rule(invals, *, axes, **params):
+        (x,) = invals
+        if not _is_float(x) or not axes:
+            return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
+        if _sums[-1] == "xla":
+            return jnp.sum(x.astype(jnp.float32), axes).astype(x.dtype)
+        if _sums[-1] == "kernel" and (interpret or jax.default_backend() == "gpu"):
+            return tree_sum_kernel(x, axes, interpret)
+        return pairwise_sum(x, axes)
+
+    return rule
 
 
 def _patchify_rule(interpret):
@@ -330,5 +385,5 @@ def batch_invariant(fn, interpret: bool = False):
     """fn with batch-invariant products, patchify convolutions and sums (the module's
     docstring); `interpret`: the products by the Pallas kernel's interpreter on any backend."""
     rules = {"dot_general": _product_rule(interpret), "conv_general_dilated": _patchify_rule(interpret),
-             "reduce_sum": _sum_rule}
+             "reduce_sum": _sum_rule(interpret)}
     return jaxpr_rewrite.with_rules(fn, rules)

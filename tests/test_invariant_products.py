@@ -81,6 +81,20 @@ def test_sums_are_pairwise_trees_of_the_values():
     np.testing.assert_array_equal(np.asarray(soft(x[:, :, 0])[:1]), np.asarray(soft(x[:1, :, 0])))
 
 
+@pytest.mark.parametrize("shape,axes", [((40, 3, 149), (2,)), ((3, 300, 5), (1, 2)), ((4, 6, 33), (0, 2)),
+                                        ((5, 1), (1,)), ((2, 20000), (1,))])
+def test_the_sum_kernel_adds_the_pairwise_tree_bit_for_bit(shape, axes):
+    x = _random(shape, 13, jnp.float32) * 100
+    want = np.asarray(ip.pairwise_sum(x, axes))
+    np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: ip.tree_sum_kernel(v, axes, interpret=True))(x)), want)
+    # and as the rewrite's sums, in a softmax
+    with ip.sum_kind("kernel"):
+        soft = jax.jit(ip.batch_invariant(lambda v: jax.nn.softmax(v, -1), interpret=True))
+        got = np.asarray(soft(x.reshape(-1, shape[-1])))
+    np.testing.assert_array_equal(got, np.asarray(jax.jit(ip.batch_invariant(lambda v: jax.nn.softmax(v, -1)))(
+        x.reshape(-1, shape[-1]))))
+
+
 def test_the_patchify_convolution_is_the_product_over_patches_and_others_are_refused():
     img = jax.random.uniform(jax.random.key(9), (2, 16, 32, 3), jnp.float32, -1, 1)
     conv = nn.Conv(24, (8, 8), strides=8, dtype=jnp.bfloat16)

@@ -18,10 +18,12 @@ invariance.
 
 It also times the sums those numerics use (`invariant_products.pairwise_sum`) at the attention
 softmax's shape [B, heads, prompt, prompt] for B = 1, 16 and --batch: the tree fused into one
-kernel, its wide levels one kernel each, and XLA's own (not invariant by construction) sum, and
-checks that the two trees give the same bits; and, with the first configuration, the whole
-numerics with XLA's sums in place of the trees (`invariant_products.sum_kind("xla")`), whose
-invariance is then only what the check measures.
+kernel, its wide levels one kernel each, the same tree in one Pallas kernel
+(`tree_sum_kernel`, on a GPU) and XLA's own (not invariant by construction) sum, and checks
+that the trees give the same bits; and, with the first configuration, the whole numerics with
+each other sum kind (`invariant_products.sum_kind`): "kernel" must keep the first's bits,
+"xla" is invariant only as far as the check measures. A variant that fails to compile is
+recorded as such; the JSON is written after each measurement.
 
 Off a GPU the products run XLA's dot (the kernel needs one), so every configuration computes
 alike there; the study is for GPUs.
@@ -86,18 +88,22 @@ def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
 
 
 def time_sums(cfg: vla.VLAConfig, batch: int) -> list[dict]:
-    """The attention softmax's sum, three ways, at batch 1, 16 and `batch`."""
+    """The attention softmax's sum at batch 1, 16 and `batch`: the tree in one fusion, its wide
+    levels apart, in one Pallas kernel (on a GPU) and XLA's own; whether the trees agree."""
+    ways = {"fused": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=1 << 62),
+            "levels": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=0),
+            "xla": lambda v: jnp.sum(v, 3)}
+    if jax.default_backend() == "gpu":
+        ways["kernel"] = lambda v: invariant_products.tree_sum_kernel(v, (3,))
     rows = []
     for b in sorted({1, 16, batch}):
         shape = (b, cfg.n_heads, cfg.prompt_len, cfg.prompt_len)
         x = jax.random.uniform(jax.random.PRNGKey(b), shape, jnp.float32)
-        ways = {"fused": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=1 << 62),
-                "levels": lambda v: invariant_products.pairwise_sum(v, (3,), level_kernels_above=0),
-                "xla": lambda v: jnp.sum(v, 3)}
         row = {"shape": list(shape), **{f"{k}_ms": timing.in_graph_ms(f, (x,)) for k, f in ways.items()}}
-        row["trees_equal"] = bool((jax.jit(ways["fused"])(x) == jax.jit(ways["levels"])(x)).all())
-        print(f"sum over {shape}: tree in one kernel {row['fused_ms']:.3f} ms, wide levels apart "
-              f"{row['levels_ms']:.3f} ms, XLA's {row['xla_ms']:.3f} ms; trees equal: {row['trees_equal']}", flush=True)
+        tree = np.asarray(jax.jit(ways["fused"])(x))
+        row["trees_equal"] = all(bool((np.asarray(jax.jit(ways[k])(x)) == tree).all()) for k in ways if k != "xla")
+        print(f"sum over {shape}: " + ", ".join(f"{k} {row[k + '_ms']:.3f} ms" for k in ways)
+              + f"; the trees equal: {row['trees_equal']}", flush=True)
         rows.append(row)
     return rows
 
@@ -114,27 +120,33 @@ def main(argv):
     params, cfg = cli.load_target(FLAGS.checkpoint)
     cfg, params = methods.in_dtype(cfg, "bfloat16", params)
     obs = random_obs(cfg, FLAGS.batch)
-    sums = time_sums(cfg, FLAGS.batch)
-    rows = [measure(cfg, params, obs, "xla bf16")]
-    rows[0].pop("_logits_1")
+    result = {**results_io.provenance(cli.command_line()), "batch": FLAGS.batch, "rows": []}
+    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
+
+    def add(row):  # written after each measurement: a later one that fails loses none before it
+        result["rows"].append(row)
+        results_io.write_json_atomic(FLAGS.out, result)
+
+    result["sums"] = time_sums(cfg, FLAGS.batch)
+    add({k: v for k, v in measure(cfg, params, obs, "xla bf16").items() if k != "_logits_1"})
     inv = dataclasses.replace(cfg, matmul_precision="bf16_invariant")
+    variants = [(t, text, "pairwise") for t, text in zip(configs, FLAGS.tiles)]
+    variants += [(configs[0], FLAGS.tiles[0], kind) for kind in invariant_products.SUMS if kind != "pairwise"]
     first = None
-    for tiles, text in zip(configs, FLAGS.tiles):
-        with invariant_products.tile_shape(tiles):  # read while each function is traced, inside
-            row = {**measure(inv, params, obs, f"bf16_invariant {text}"), "tiles": dataclasses.asdict(tiles)}
+    for tiles, text, kind in variants:
+        label = f"bf16_invariant {text}" + ("" if kind == "pairwise" else f", {kind} sums")
+        try:  # read while each function is traced, inside
+            with invariant_products.tile_shape(tiles), invariant_products.sum_kind(kind):
+                row = {**measure(inv, params, obs, label), "tiles": dataclasses.asdict(tiles), "sums": kind}
+        except Exception as e:  # noqa: BLE001  (a candidate that does not compile is a result)
+            print(f"{label}: failed: {type(e).__name__}: {str(e)[:500]}", flush=True)
+            add({"label": label, "sums": kind, "error": f"{type(e).__name__}: {str(e)[:2000]}"})
+            continue
         logits = row.pop("_logits_1")
         first = logits if first is None else first
         row["same_bits_as_first"] = all(bool((a == b).all()) for a, b in zip(logits, first))
         print(f"{'':<22} batch 1's logits equal to {FLAGS.tiles[0]}'s: {row['same_bits_as_first']}", flush=True)
-        rows.append(row)
-    with invariant_products.tile_shape(configs[0]), invariant_products.sum_kind("xla"):
-        row = {**measure(inv, params, obs, f"bf16_invariant {FLAGS.tiles[0]}, XLA sums"),
-               "tiles": dataclasses.asdict(configs[0]), "sums": "xla"}
-    row.pop("_logits_1")
-    rows.append(row)
-    Path(FLAGS.out).parent.mkdir(parents=True, exist_ok=True)
-    results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "batch": FLAGS.batch,
-                                             "sums": sums, "rows": rows})
+        add(row)
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 
