@@ -170,6 +170,6 @@ def test_another_tile_shape_computes_the_same_product_and_bad_ones_are_refused()
                          ("64x64x32x3", "warps=3: valid are"), ("64by64", "expected MxNxK")):
         with pytest.raises(ValueError, match=message):
             ip.Tiles.parse(bad)
-    with pytest.raises(ValueError, match="sum kind 'tree': valid are pairwise, xla"):
+    with pytest.raises(ValueError, match="sum kind 'tree': valid are pairwise, kernel, xla"):
         with ip.sum_kind("tree"):
             pass
