@@ -60,9 +60,10 @@ flags.DEFINE_integer("steps", 6000, "Optimizer steps of the first policy (with -
 flags.DEFINE_integer("dagger_steps", 3000, "Optimizer steps of each DAgger round's fine-tuning.")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
-flags.DEFINE_float("label_sigma_bins", 2.0, "Ordinal label smoothing of every training stage (Gaussian targets of this "
-                   "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target).")
-flags.DEFINE_enum("param_dtype", "float32", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
+flags.DEFINE_float("label_sigma_bins", 0.6, "Ordinal label smoothing of every training stage (Gaussian targets of this "
+                   "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target); "
+                   "0.6, the shipped target's, lets its tokens survive bf16 rounding (docs/target.md).")
+flags.DEFINE_enum("param_dtype", "bfloat16", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
                   "in (train --export_param_dtype); a policy runs in its stored dtype, so bfloat16 makes bf16 the "
                   "precision of the DAgger rollouts, the evaluation and the installed target. Training always keeps "
                   "float32 master weights and computes in bfloat16.")
