@@ -83,24 +83,28 @@ class Tiles:
                              f"({e})") from None
 
 
-_tiles = [Tiles()]
-
-
 @contextlib.contextmanager
-def tile_shape(tiles: Tiles):
-    """Products traced inside use `tiles` (a function jitted before keeps what it was traced with)."""
-    _tiles.append(tiles)
+def _pushed(stack: list, value):
+    """`value` on top of a setting's stack (read at trace time) while inside."""
+    stack.append(value)
     try:
         yield
     finally:
-        _tiles.pop()
+        stack.pop()
+
+
+_tiles = [Tiles()]
+
+
+def tile_shape(tiles: Tiles):
+    """Products traced inside use `tiles` (a function jitted before keeps what it was traced with)."""
+    return _pushed(_tiles, tiles)
 
 
 SUMS = ("pairwise", "kernel", "xla")
 _sums = ["pairwise"]
 
 
-@contextlib.contextmanager
 def sum_kind(kind: str):
     """Sums traced inside are `kind`: "pairwise" (the default, `pairwise_sum`: one order by
     construction), "kernel" (`tree_sum_kernel`: the same tree, bit for bit, in one Pallas kernel;
@@ -109,15 +113,16 @@ def sum_kind(kind: str):
     studies that measure them."""
     if kind not in SUMS:
         raise ValueError(f"sum kind {kind!r}: valid are {', '.join(SUMS)}")
-    _sums.append(kind)
-    try:
-        yield
-    finally:
-        _sums.pop()
+    return _pushed(_sums, kind)
 
 
 def _round_up(n: int, m: int) -> int:
     return -(-n // m) * m
+
+
+def _kernels(interpret: bool) -> bool:
+    """Whether the Pallas kernels run: on a GPU, or anywhere through the interpreter."""
+    return interpret or jax.default_backend() == "gpu"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,7 +211,7 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
     elsewhere XLA's product of the same operands."""
     (lc, rc), (lb, rb) = dimension_numbers
     out_dtype = jnp.dtype(preferred_element_type or jnp.result_type(lhs, rhs))
-    if not (interpret or jax.default_backend() == "gpu"):
+    if not _kernels(interpret):
         out = jax.lax.dot_general(lhs.astype(jnp.bfloat16), rhs.astype(jnp.bfloat16), dimension_numbers,
                                   preferred_element_type=jnp.float32)
         return out.astype(out_dtype)
@@ -245,6 +250,16 @@ _LEVEL_KERNELS_ABOVE = 1 << 21
 _FUSED_WIDTH = 32
 
 
+def _rows(x: jnp.ndarray, axes) -> tuple[jnp.ndarray, int]:
+    """x as [*kept dims, n]: the values each output sums (the reduced axes, flattened) last; and
+    the width of their tree (n rounded up to a power of two)."""
+    axes = tuple(sorted(a % x.ndim for a in axes))
+    kept = [d for d in range(x.ndim) if d not in axes]
+    n = int(np.prod([x.shape[d] for d in axes]))
+    v = jnp.transpose(x, (*kept, *axes)).reshape(*(x.shape[d] for d in kept), n)
+    return v, 1 << max(n - 1, 0).bit_length()
+
+
 def pairwise_sum(x: jnp.ndarray, axes, level_kernels_above: int | None = None) -> jnp.ndarray:
     """jnp.sum(x, axes) as a pairwise tree of float32 additions (the reduced axes flattened,
     zero-padded to a power of two, halves added until one is left), in x's dtype. Each output
@@ -257,13 +272,8 @@ def pairwise_sum(x: jnp.ndarray, axes, level_kernels_above: int | None = None) -
     add neighbouring values; the narrow rest is one fusion. Where the kernels split the tree
     does not change a single addition, so every shape gets the same bits, and small sums (batch
     1) keep one kernel (`experiments/studies/invariant_tiles.py` times both ways)."""
-    axes = tuple(sorted(a % x.ndim for a in axes))
-    kept = [d for d in range(x.ndim) if d not in axes]
-    kept_shape = [x.shape[d] for d in kept]
-    n = int(np.prod([x.shape[d] for d in axes]))
-    v = jnp.transpose(x, (*kept, *axes)).reshape(*kept_shape, n).astype(jnp.float32)
-    width = 1 << max(n - 1, 0).bit_length()
-    v = jnp.pad(v, [(0, 0)] * len(kept_shape) + [(0, width - n)])
+    v, width = _rows(x, axes)
+    v = jnp.pad(v.astype(jnp.float32), [(0, 0)] * (v.ndim - 1) + [(0, width - v.shape[-1])])
     split = v.size > (_LEVEL_KERNELS_ABOVE if level_kernels_above is None else level_kernels_above)
     while v.shape[-1] > 1:
         half = v.shape[-1] // 2
@@ -299,15 +309,12 @@ def tree_sum_kernel(x: jnp.ndarray, axes, interpret: bool = False) -> jnp.ndarra
     rows whole (neighbouring values at neighbouring addresses) and adds each row's tree in
     registers, where XLA's fusion of the tree reads every row strided. Rows wider than
     `_SUM_WIDEST` values fall back to `pairwise_sum`."""
-    axes = tuple(sorted(a % x.ndim for a in axes))
-    kept = [d for d in range(x.ndim) if d not in axes]
-    kept_shape = [x.shape[d] for d in kept]
-    n = int(np.prod([x.shape[d] for d in axes]))
+    v, width = _rows(x, axes)
+    kept_shape, n = v.shape[:-1], v.shape[-1]
     rows = int(np.prod(kept_shape))
-    width = 1 << max(n - 1, 0).bit_length()
     if width > _SUM_WIDEST or rows == 0:
         return pairwise_sum(x, axes)
-    v = jnp.transpose(x, (*kept, *axes)).reshape(rows, n)
+    v = v.reshape(rows, n)
     block_rows = max(1, _SUM_BLOCK // width)
     if interpret:  # the interpreter clamps a slice past the end where the GPU's masked loads read nothing
         v = jnp.pad(v, ((0, _round_up(rows, block_rows) - rows), (0, width - n)))
@@ -343,7 +350,7 @@ def _sum_rule(interpret):
             return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
         if _sums[-1] == "xla":
             return jnp.sum(x.astype(jnp.float32), axes).astype(x.dtype)
-        if _sums[-1] == "kernel" and (interpret or jax.default_backend() == "gpu"):
+        if _sums[-1] == "kernel" and _kernels(interpret):
             return tree_sum_kernel(x, axes, interpret)
         return pairwise_sum(x, axes)
 

@@ -63,8 +63,9 @@ def random_obs(cfg: vla.VLAConfig, batch: int) -> Observation:
                        proprio=jax.random.normal(k3, (batch, cfg.proprio_dim)))
 
 
-def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
-    """The four pieces' ms and the two invariance checks, for cfg's numerics, traced now."""
+def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> tuple[dict, tuple]:
+    """The four pieces' ms and the two invariance checks, for cfg's numerics, traced now; and
+    batch 1's (prefill, step) logits."""
     prefill = jax.jit(lambda p, o: vla.prefill(p, cfg, o))
 
     def step(p, cache, tok):
@@ -79,12 +80,12 @@ def measure(cfg: vla.VLAConfig, params, obs: Observation, label: str) -> dict:
         row[f"prefill_ms_{name}"] = timing.in_graph_ms(lambda p, o: vla.prefill(p, cfg, o)[0], (params, o))
         row[f"step_ms_{name}"] = timing.in_graph_ms(step, (params, cache, tok))
         row[f"_logits_{name}"] = (np.asarray(logits[:1]), np.asarray(step(params, cache, tok)[:1]))
-    (p1, s1), (pb, sb) = row["_logits_1"], row.pop("_logits_batch")
+    (p1, s1), (pb, sb) = row.pop("_logits_1"), row.pop("_logits_batch")
     row["prefill_invariant"], row["step_invariant"] = bool((p1 == pb).all()), bool((s1 == sb).all())
     print(f"{label:<22} prefill {row['prefill_ms_1']:.3f} / {row['prefill_ms_batch']:.3f} ms  "
           f"step {row['step_ms_1']:.3f} / {row['step_ms_batch']:.3f} ms  (batch 1 / {obs.image.shape[0]})  "
           f"invariant: prefill {row['prefill_invariant']}, step {row['step_invariant']}", flush=True)
-    return row
+    return row, (p1, s1)
 
 
 def time_sums(cfg: vla.VLAConfig, batch: int) -> list[dict]:
@@ -128,7 +129,7 @@ def main(argv):
         results_io.write_json_atomic(FLAGS.out, result)
 
     result["sums"] = time_sums(cfg, FLAGS.batch)
-    add({k: v for k, v in measure(cfg, params, obs, "xla bf16").items() if k != "_logits_1"})
+    add(measure(cfg, params, obs, "xla bf16")[0])
     inv = dataclasses.replace(cfg, matmul_precision="bf16_invariant")
     variants = [(t, text, "pairwise") for t, text in zip(configs, FLAGS.tiles)]
     variants += [(configs[0], FLAGS.tiles[0], kind) for kind in invariant_products.SUMS if kind != "pairwise"]
@@ -137,12 +138,12 @@ def main(argv):
         label = f"bf16_invariant {text}" + ("" if kind == "pairwise" else f", {kind} sums")
         try:  # read while each function is traced, inside
             with invariant_products.tile_shape(tiles), invariant_products.sum_kind(kind):
-                row = {**measure(inv, params, obs, label), "tiles": dataclasses.asdict(tiles), "sums": kind}
+                row, logits = measure(inv, params, obs, label)
         except Exception as e:  # noqa: BLE001  (a candidate that does not compile is a result)
             print(f"{label}: failed: {type(e).__name__}: {str(e)[:500]}", flush=True)
             add({"label": label, "sums": kind, "error": f"{type(e).__name__}: {str(e)[:2000]}"})
             continue
-        logits = row.pop("_logits_1")
+        row.update(tiles=dataclasses.asdict(tiles), sums=kind)
         first = logits if first is None else first
         row["same_bits_as_first"] = all(bool((a == b).all()) for a, b in zip(logits, first))
         print(f"{'':<22} batch 1's logits equal to {FLAGS.tiles[0]}'s: {row['same_bits_as_first']}", flush=True)
