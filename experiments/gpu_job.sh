@@ -29,7 +29,7 @@
 # most 10 minutes, /tmp/gpu_job/out (emptied by each `start`: unpack what `poll` brought back
 # first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results.tar.part-* (15 MiB
 # parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
-# there yet is named and skipped) and a build_target work folder's finished stack (build.json,
+# there yet is named and skipped) and each build_target work folder's finished stack (build.json,
 # logs, the latest complete vla*, drafter, datastore, eval_ar.json); with neither, everything.
 # JAX's compilation cache persists in $GPU_JOB_WORK/jax_cache (GPU_JOB_WORK: /tmp/gpu_job)
 # unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
@@ -73,13 +73,14 @@ run() {  # runs the commands separated by `--` one after another; exits with the
 pack() {  # the PATHs given and a build's finished stack; with neither, everything; into $OUT
   local d=$WORK/out items=() b v f p
   for p in "$@"; do [ -e "$d/$p" ] && items+=("$p") || echo "pack: no $p (yet)"; done
-  b=$(cd "$d" && ls -d */build.json */*/build.json 2>/dev/null | head -n 1)  # a build, or one under per-gpu's gpuI
-  if [ -n "$b" ]; then  # a build's checkpoint always comes back: a lost machine then costs the stages after it only
+  local builds; builds=$(cd "$d" && ls -d */build.json */*/build.json 2>/dev/null)  # builds, also under per-gpu's gpuI
+  for b in $builds; do  # a build's checkpoint always comes back: a lost machine then costs the stages after it only
     b=${b%/build.json}; items+=("$b/build.json" "$b/logs")
     v=$(cd "$d" && for x in $(ls -d "$b"/vla[0-9]* 2>/dev/null | sort -rV); do [ -d "$x/0" ] && echo "$x" && break; done)
     [ -n "$v" ] && items+=("$v")  # the newest complete policy
     for f in drafter datastore eval_ar.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
-  elif [ $# -eq 0 ]; then
+  done
+  if [ -z "$builds" ] && [ $# -eq 0 ]; then
     items=(.)
   fi
   [ ${#items[@]} -eq 0 ] && return 0
