@@ -71,9 +71,9 @@ flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
-flags.DEFINE_bool("deterministic", True, "Every training stage compiled with deterministic GPU reductions and "
-                  "convolutions (train --deterministic), so that a seed reproduces a stage's parameters. Not a "
-                  "setting of the build's recipe: a build resumes with either.")
+flags.DEFINE_bool("deterministic", True, "Every training and collection stage compiled with deterministic GPU "
+                  "reductions and convolutions (train and collect_demos --deterministic), so that a seed reproduces "
+                  "a stage's parameters and data. Not a setting of the build's recipe: a build resumes with either.")
 flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
@@ -152,7 +152,7 @@ def plan(w: Path) -> list[Stage]:
              f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
-    stages = [Stage("demos", ["collect_demos", *collect, f"--episodes_per_task={FLAGS.demo_episodes}",
+    stages = [Stage("demos", ["collect_demos", *collect, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
                     {"kept": r"kept (\d+/\d+)", **TIME}),
@@ -168,7 +168,7 @@ def plan(w: Path) -> list[Stage]:
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
         adapt = [f"--weights_from={w / f'dagger{r - 1}'}"] if FLAGS.adapt_weights and r > 1 else []
-        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *adapt, f"--policy={_policy(w, r - 1)}",
+        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *adapt, *determinism, f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
@@ -192,7 +192,7 @@ def plan(w: Path) -> list[Stage]:
     if FLAGS.rollout_episodes and ("drafter" not in FLAGS.skip or datastore_from_rollouts):
         if "drafter" not in FLAGS.skip:
             data.append(str(rollouts))
-        stages.append(Stage("target_rollouts", ["collect_demos", *scope, f"--policy={final}", "--beta=0",
+        stages.append(Stage("target_rollouts", ["collect_demos", *scope, *determinism, f"--policy={final}", "--beta=0",
                                                 f"--episodes_per_task={FLAGS.rollout_episodes}",
                                                 f"--first_episode={100000 * (FLAGS.rounds + 1)}",
                                                 f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],

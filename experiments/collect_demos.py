@@ -28,7 +28,7 @@ import envs  # noqa: F401  (XLA CPU flag before JAX starts)
 from envs import camera, demos, expert, rollout, scene, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
-from heisd_jax import sharding
+from heisd_jax import sharding, xla_options
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -54,6 +54,10 @@ flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the exec
 flags.DEFINE_integer("first_episode", 0, "Index of the first training initial state (to extend a dataset).")
 flags.DEFINE_string("out", "data/demos", "Output dataset directory.")
 flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (only once the new one is complete).")
+flags.DEFINE_bool("deterministic", True, "Compile the collection with deterministic GPU reductions "
+                  "(heisd_jax.xla_options.DETERMINISTIC), so a rerun writes the same dataset. Without it the "
+                  "simulator's scatter-adds use atomics on a GPU, and a rare episode ends a step apart from one run "
+                  "to the next (docs/target.md); with it the device run takes ~1.35x as long.")
 
 
 def main(argv):
@@ -116,6 +120,7 @@ def main(argv):
         return rollout.record_episodes(env, acting, keys, tids, n_steps, exec_noise=FLAGS.action_noise, limit=limit, **mix)
 
     programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
+    options = xla_options.DETERMINISTIC if FLAGS.deterministic else None
     beta = jnp.float32(FLAGS.beta)
 
     def collect(batch, limit):
@@ -125,7 +130,8 @@ def main(argv):
         size = batch[0].shape[0]
         if size not in programs:
             with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
-                programs[size] = jax.jit(record_fn).lower(params, beta, *batch, jnp.int32(limit)).compile()
+                programs[size] = jax.jit(record_fn, compiler_options=options).lower(
+                    params, beta, *batch, jnp.int32(limit)).compile()
         t1 = time.perf_counter()
         final, traj = jax.block_until_ready(programs[size](params, beta, *batch, jnp.int32(limit)))
         t2 = time.perf_counter()

@@ -21,7 +21,8 @@ target's action at batch 1 and at batch 256 differs on a third of states (docs/t
     same product over the image's patches.
   - every floating `reduce_sum` (softmax denominators, RMSNorm's mean square) as a pairwise
     tree of elementwise float32 additions over the reduced axes (zero-padded to a power of
-    two), whose order XLA keeps whatever the batch.
+    two), whose order XLA keeps whatever the batch; a large sum on a GPU by a Pallas kernel
+    that adds the same tree (`tree_sum_kernel`), where XLA's fusion of it reads uncoalesced.
 This is the approach of batch-invariant kernels for LLM inference (Thinking Machines, "Defeating
 Nondeterminism in LLM Inference", 2025), applied by rewriting the model's program
 (`jaxpr_rewrite`), so the model needs no change. The model does two things itself under
@@ -106,11 +107,12 @@ _sums = ["pairwise"]
 
 
 def sum_kind(kind: str):
-    """Sums traced inside are `kind`: "pairwise" (the default, `pairwise_sum`: one order by
-    construction), "kernel" (`tree_sum_kernel`: the same tree, bit for bit, in one Pallas kernel;
-    on a GPU or interpreted, elsewhere "pairwise") or "xla" (XLA's own float32 reduction, whose
-    order its emitter picks; batch-invariant only as far as measured). The last two are for the
-    studies that measure them."""
+    """Sums traced inside are `kind`: "pairwise" (the default: one tree, one order by
+    construction; `pairwise_sum`, or for a sum over more than `_LARGE_SUM` values on a GPU
+    `tree_sum_kernel`, which adds the same tree bit for bit), "kernel" (`tree_sum_kernel` at
+    every size; on a GPU or interpreted, elsewhere "pairwise") or "xla" (XLA's own float32
+    reduction, whose order its emitter picks; batch-invariant only as far as measured). The
+    last two are for the studies that measure them."""
     if kind not in SUMS:
         raise ValueError(f"sum kind {kind!r}: valid are {', '.join(SUMS)}")
     return _pushed(_sums, kind)
@@ -244,9 +246,11 @@ def dot_general(lhs, rhs, dimension_numbers, preferred_element_type=None, interp
 
 
 # A sum over more values than this (8 MiB of float32; a batch-16 prefill's attention is more, batch
-# 1's passes less) adds its wide tree levels one kernel each. Below it the launches are estimated
-# to cost more than the uncoalesced reads they save; the threshold is not tuned.
-_LEVEL_KERNELS_ABOVE = 1 << 21
+# 1's passes less) is a large one: on a GPU `tree_sum_kernel`'s, elsewhere `pairwise_sum` adds its
+# wide tree levels one kernel each. At a batch-512 prefill's attention sum on an H200 the tree in
+# one fusion took 1.92 ms, its levels apart 0.38, the kernel 0.12 (XLA's own sum 0.11); at batch 16
+# all took 0.03-0.04 ms (experiments/studies/invariant_tiles.py). Not tuned further.
+_LARGE_SUM = 1 << 21
 _FUSED_WIDTH = 32
 
 
@@ -267,14 +271,14 @@ def pairwise_sum(x: jnp.ndarray, axes, level_kernels_above: int | None = None) -
 
     XLA fuses a whole tree into one loop in which each output strides through its own values,
     uncoalesced: at a batch-512 prefill's attention, the largest kernel of the pass. So a large
-    sum (over `level_kernels_above` values in all, default `_LEVEL_KERNELS_ABOVE`) materialises
+    sum (over `level_kernels_above` values in all, default `_LARGE_SUM`) materialises
     each level wider than `_FUSED_WIDTH` (an optimisation barrier), where neighbouring threads
     add neighbouring values; the narrow rest is one fusion. Where the kernels split the tree
     does not change a single addition, so every shape gets the same bits, and small sums (batch
     1) keep one kernel (`experiments/studies/invariant_tiles.py` times both ways)."""
     v, width = _rows(x, axes)
     v = jnp.pad(v.astype(jnp.float32), [(0, 0)] * (v.ndim - 1) + [(0, width - v.shape[-1])])
-    split = v.size > (_LEVEL_KERNELS_ABOVE if level_kernels_above is None else level_kernels_above)
+    split = v.size > (_LARGE_SUM if level_kernels_above is None else level_kernels_above)
     while v.shape[-1] > 1:
         half = v.shape[-1] // 2
         v = v[..., :half] + v[..., half:]
@@ -350,7 +354,8 @@ def _sum_rule(interpret):
             return jax.lax.reduce_sum_p.bind(x, axes=axes, **params)
         if _sums[-1] == "xla":
             return jnp.sum(x.astype(jnp.float32), axes).astype(x.dtype)
-        if _sums[-1] == "kernel" and _kernels(interpret):
+        large_on_gpu = x.size > _LARGE_SUM and jax.default_backend() == "gpu"
+        if _sums[-1] == "kernel" and _kernels(interpret) or _sums[-1] == "pairwise" and large_on_gpu:
             return tree_sum_kernel(x, axes, interpret)
         return pairwise_sum(x, axes)
 

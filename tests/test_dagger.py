@@ -141,7 +141,10 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     rounds = {s.split()[0]: cmd for s, cmd in stages}
     assert "--weights_from" not in rounds["dagger1"]  # no earlier round to weigh by
     assert f"--weights_from={tmp_path / 'w' / 'dagger1'}" in rounds["dagger2"]  # the previous round's failures
-    assert all("--deterministic=false" in rounds[s] for s in ("train1", "train2", "drafter"))  # every training stage
+    # every training and collection stage
+    assert all("--deterministic=false" in rounds[s] for s in ("demos", "dagger1", "train1", "dagger2", "train2",
+                                                              "target_rollouts", "drafter"))
+    assert "--deterministic" not in rounds["eval"]
 
 
 def test_failure_weights_follow_the_failure_rate():

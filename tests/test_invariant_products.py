@@ -74,7 +74,7 @@ def test_sums_are_pairwise_trees_of_the_values():
 
     np.testing.assert_array_equal(np.asarray(got), tree(np.asarray(x).reshape(3, 1500)))
     large = np.asarray(_random((7000, 300), 11, jnp.float32))
-    assert large.size > ip._LEVEL_KERNELS_ABOVE
+    assert large.size > ip._LARGE_SUM
     np.testing.assert_array_equal(np.asarray(jax.jit(lambda v: ip.pairwise_sum(v, (1,)))(large)), tree(large))
     # the rewritten softmax sums with the tree: a row alone and in a batch agree bit for bit
     soft = jax.jit(ip.batch_invariant(lambda v: jax.nn.softmax(v, -1)))
@@ -173,3 +173,15 @@ def test_another_tile_shape_computes_the_same_product_and_bad_ones_are_refused()
     with pytest.raises(ValueError, match="sum kind 'tree': valid are pairwise, kernel, xla"):
         with ip.sum_kind("tree"):
             pass
+
+
+def test_large_sums_take_the_kernel_on_a_gpu_and_small_ones_the_fused_tree(monkeypatch):
+    """The default sums route by size on a GPU: over `_LARGE_SUM` values, the Pallas kernel
+    (which adds the same tree); below, the tree in XLA's own fusion. Elsewhere always the tree."""
+    def kernels_in(v):
+        return str(jax.make_jaxpr(ip.batch_invariant(lambda v: jnp.sum(v, -1), interpret=True))(v)).count("pallas_call")
+
+    small, large = jnp.zeros((4, 300)), jnp.zeros((ip._LARGE_SUM // 256 + 1, 512))
+    assert kernels_in(small) == kernels_in(large) == 0  # on this CPU
+    monkeypatch.setattr(ip.jax, "default_backend", lambda: "gpu")
+    assert kernels_in(small) == 0 and kernels_in(large) == 1
