@@ -60,9 +60,11 @@ flags.DEFINE_integer("steps", 6000, "Optimizer steps of the first policy (with -
 flags.DEFINE_integer("dagger_steps", 3000, "Optimizer steps of each DAgger round's fine-tuning.")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
-flags.DEFINE_float("label_sigma_bins", 0.6, "Ordinal label smoothing of every training stage (Gaussian targets of this "
-                   "std in bins; 0: one-hot). Smaller makes the greedy bin stand out more (a more confident target); "
-                   "0.6, the shipped target's, lets its tokens survive bf16 rounding (docs/target.md).")
+flags.DEFINE_list("label_sigma_bins", ["0.6"], "Ordinal label smoothing (Gaussian targets of this std in bins; 0: "
+                  "one-hot), one value per policy trained: the first, then each DAgger round's fine-tuning (the last "
+                  "value repeats), e.g. 2,2,0.6 for wide labels early and sharp ones at the end, as the shipped "
+                  "target was made. Smaller makes the greedy bin stand out more (a more confident target); 0.6, the "
+                  "shipped target's last, lets its tokens survive bf16 rounding (docs/target.md).")
 flags.DEFINE_enum("param_dtype", "bfloat16", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
                   "in (train --export_param_dtype); a policy runs in its stored dtype, so bfloat16 makes bf16 the "
                   "precision of the DAgger rollouts, the evaluation and the installed target. Training always keeps "
@@ -126,20 +128,29 @@ def _policy(w: Path, r: int) -> Path:
     return w / f"vla{r}"
 
 
-def _betas() -> list[float]:
+def _schedule(name: str, hi: float = float("inf")) -> list[float]:
+    """The numbers of list flag `name`, each in [0, hi]; UsageError naming the flag otherwise."""
+    text = ",".join(getattr(FLAGS, name))
     try:
-        betas = [float(b) for b in FLAGS.beta]
+        values = [float(v) for v in getattr(FLAGS, name)]
     except ValueError:
-        raise app.UsageError(f"--beta: expected comma-separated numbers, got {','.join(FLAGS.beta)}") from None
-    if not betas or not all(0 <= b <= 1 for b in betas):
-        raise app.UsageError(f"--beta: each value must be in [0, 1], got {','.join(FLAGS.beta)}")
-    return betas
+        raise app.UsageError(f"--{name}: expected comma-separated numbers, got {text}") from None
+    if not values or not all(0 <= v <= hi for v in values):
+        bound = f"in [0, {hi:g}]" if hi < float("inf") else ">= 0"
+        raise app.UsageError(f"--{name}: each value must be {bound}, got {text}")
+    return values
 
 
 def _beta(r: int) -> float:
     """DAgger round r's (1-based) beta."""
-    betas = _betas()
+    betas = _schedule("beta", 1.0)
     return betas[min(r, len(betas)) - 1]
+
+
+def _sigma(r: int) -> float:
+    """The label std of policy r's training (0: the first policy, r: DAgger round r's)."""
+    sigmas = _schedule("label_sigma_bins")
+    return sigmas[min(r, len(sigmas) - 1)]
 
 
 def plan(w: Path) -> list[Stage]:
@@ -149,7 +160,7 @@ def plan(w: Path) -> list[Stage]:
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
     determinism = [] if FLAGS.deterministic else ["--deterministic=false"]
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
-             f"--label_sigma_bins={FLAGS.label_sigma_bins:g}", f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
+             f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
     stages = [Stage("demos", ["collect_demos", *collect, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
@@ -158,6 +169,7 @@ def plan(w: Path) -> list[Stage]:
                     {"kept": r"kept (\d+/\d+)", **TIME}),
               Stage("train0", ["train", "--model=vla", f"--demos={w / 'demos'}", f"--out={w / 'run0'}",
                                f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", f"--warmup_steps={min(300, FLAGS.steps // 4)}", *model,
+                               f"--label_sigma_bins={_sigma(0):g}",
                                f"--export={_policy(w, 0)}"], _policy(w, 0), acc)]
     if FLAGS.start:  # round 0 is the given policy, trained on for --steps more (none: as it is)
         if FLAGS.steps:
@@ -176,6 +188,7 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
                                           f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
                                           f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
+                                          f"--label_sigma_bins={_sigma(r):g}",
                                           f"--export={_policy(w, r)}"], _policy(w, r), acc))
     final = _policy(w, FLAGS.rounds)
     from envs import tasks as tasks_lib  # noqa: PLC0415
@@ -236,8 +249,9 @@ def _settings() -> dict:
         out["suite_weights"] = list(FLAGS.suite_weights)
     if FLAGS.datastore_source != "demos":  # likewise
         out["datastore_source"] = FLAGS.datastore_source
-    if FLAGS.label_sigma_bins != 2.0:  # likewise
-        out["label_sigma_bins"] = FLAGS.label_sigma_bins
+    sigmas = [_sigma(r) for r in range(FLAGS.rounds + 1)]
+    if set(sigmas) != {2.0}:  # likewise; one number where every policy has the same (as builds before the schedule)
+        out["label_sigma_bins"] = sigmas[0] if len(set(sigmas)) == 1 else sigmas
     if FLAGS.seed:  # likewise
         out["seed"] = FLAGS.seed
     if FLAGS.adapt_weights:  # likewise
@@ -323,8 +337,7 @@ def main(argv):
                  "eval_episodes", "batch_size"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
-    if FLAGS.label_sigma_bins < 0:
-        raise app.UsageError(f"--label_sigma_bins must be >= 0, got {FLAGS.label_sigma_bins}")
+    _schedule("label_sigma_bins")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
     if FLAGS.train_devices < 0:
@@ -335,7 +348,7 @@ def main(argv):
             raise app.UsageError(f"--batch_size={FLAGS.batch_size} must be a multiple of the {devices} devices each "
                                  f"training stage splits it over (--train_devices={FLAGS.train_devices}, 0: all local "
                                  f"devices); pass --train_devices or another --batch_size")
-    _betas()
+    _schedule("beta", 1.0)
     from envs import tasks as tasks_lib  # noqa: PLC0415
 
     try:

@@ -215,3 +215,28 @@ def test_failure_weights_from_an_evaluation_plain_or_gzipped(tmp_path):
     plain.write_text(json.dumps(result))
     packed.write_bytes(gzip.compress(plain.read_bytes()))
     assert cli.failure_weights(str(packed)) == cli.failure_weights(str(plain)) == ["left_block_plate:4"]
+
+
+def test_build_target_label_smoothing_follows_its_schedule(tmp_path):
+    """--label_sigma_bins gives one value per policy trained (the last repeats); a build that
+    gives every policy one value records it as builds before the schedule did (one number, none
+    at the old default of 2), so they still resume; a bad value is one line, before any stage."""
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
+                        "--rounds=2", "--label_sigma_bins=2,0.6"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    sigma = {line.split()[0]: line.split("--label_sigma_bins=")[1].split()[0]
+             for line in r.stdout.splitlines() if "--label_sigma_bins=" in line}
+    assert sigma == {"train0": "2", "train1": "0.6", "train2": "0.6"}, r.stdout
+    settings = ("import json, sys; from absl import flags; from experiments import build_target as b\n"
+                "for argv in sys.argv[1:]:\n"
+                "    flags.FLAGS.unparse_flags(); flags.FLAGS(['x', *argv.split()])\n"
+                "    print(json.dumps(b._settings().get('label_sigma_bins')))")
+    r = subprocess.run([sys.executable, "-c", settings, "", "--label_sigma_bins=2", "--label_sigma_bins=2,0.6 --rounds=2"],
+                       capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.split() == ["0.6", "null", "[2.0,", "0.6,", "0.6]"]
+    r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}",
+                        "--label_sigma_bins=2,-1"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode != 0 and "--label_sigma_bins: each value must be >= 0, got 2,-1" in r.stderr, r.stderr[-3000:]
+    assert not (tmp_path / "w").exists()
