@@ -141,9 +141,11 @@ case "${1:-}" in
         echo "== stopped $(date -u +%FT%TZ)" >> "$WORK/out/job.log"; }
     fi
     kill -0 "$pid" 2>/dev/null && echo "RUNNING" || echo "ENDED"
-    tail -c 6000 "$WORK/out/job.log"
+    if [ -f "$WORK/out/job.log" ]; then tail -c 6000 "$WORK/out/job.log"
+    else for f in "$WORK"/out/gpu*/job.log; do echo "==== ${f#$WORK/out/}"; grep -v '^W[0-9]\{4\}' "$f" | tail -c 3000; done
+    fi  # per-gpu: each GPU's own log
     nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
-    cat "$WORK"/out/*/build.json 2>/dev/null
+    cat "$WORK"/out/*/build.json "$WORK"/out/*/*/build.json 2>/dev/null
     pack "$@"; ls -la "$OUT"
     ;;
   *)
