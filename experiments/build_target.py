@@ -63,7 +63,7 @@ flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
 flags.DEFINE_list("label_sigma_bins", ["0.6"], "Ordinal label smoothing (Gaussian targets of this std in bins; 0: "
                   "one-hot), one value per policy trained: the first, then each DAgger round's fine-tuning (the last "
                   "value repeats), e.g. 2,2,0.6 for wide labels early and sharp ones at the end, as the shipped "
-                  "target was made. Smaller makes the greedy bin stand out more (a more confident target); 0.6, the "
+                  "target was made (with --start and --steps=0 the first value goes unused). Smaller makes the greedy bin stand out more (a more confident target); 0.6, the "
                   "shipped target's last, lets its tokens survive bf16 rounding (docs/target.md).")
 flags.DEFINE_enum("param_dtype", "bfloat16", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
                   "in (train --export_param_dtype); a policy runs in its stored dtype, so bfloat16 makes bf16 the "
