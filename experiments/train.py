@@ -167,7 +167,7 @@ def train_vla(out: Path, cfg: training.TrainConfig):
     table, val_table, state = _place(mesh, host), jax.device_put(val_host), _place(mesh, state)
     run_cfg = dataclasses.replace(model_cfg, dtype=FLAGS.compute_dtype)
     step = training.make_train_step(run_cfg, cfg, tok, mesh)
-    eval_fn = training.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg.label_sigma_bins)
+    eval_fn = training.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
 
     def record(state, m, s):
@@ -210,7 +210,7 @@ def train_drafter(out: Path, cfg: training.TrainConfig):
     print(f"drafter {sum(x.size for x in jax.tree.leaves(state.params)) / 1e6:.2f}M parameters, target {fp}")
     mesh = _mesh()
     step = training.make_drafter_step(model_cfg, cfg, mesh)
-    eval_fn = training.make_drafter_eval(model_cfg, min(1024, val_table.size))
+    eval_fn = training.make_drafter_eval(model_cfg, min(1024, val_table.size), cfg)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
     state, table_m, tparams_m, tokens_m = (_place(mesh, x) for x in (state, table, tparams, tokens))
 

@@ -42,7 +42,7 @@ def test_a_few_training_steps_lower_the_loss(dataset):
     cfg = training.TrainConfig(steps=60, batch_size=32, lr=3e-3, warmup_steps=5)
     state = training.init_state(CFG, cfg)
     step = training.make_train_step(CFG, cfg, tok)
-    ev = training.make_eval_fn(CFG, tok, 128)
+    ev = training.make_eval_fn(CFG, tok, 128, cfg)
     key = jax.random.PRNGKey(0)
     before, untrained = ev(state.params, table, key)
     for _ in range(cfg.steps):
@@ -143,7 +143,7 @@ def test_drafter_training_lowers_its_loss_and_its_checkpoint_is_tied_to_the_targ
     cfg = training.TrainConfig(steps=40, batch_size=32, lr=3e-3, warmup_steps=5)
     state = training.init_drafter_state(CFG, cfg)
     step = training.make_drafter_step(CFG, cfg)
-    ev = training.make_drafter_eval(CFG, 128)
+    ev = training.make_drafter_eval(CFG, 128, cfg)
     key = jax.random.PRNGKey(0)
     before, _ = ev(state.params, tparams, table, tokens, key)
     for _ in range(cfg.steps):

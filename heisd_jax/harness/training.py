@@ -20,6 +20,7 @@ device (the same rows, the same mean), up to the order of the gradient's summati
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -109,17 +110,22 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
                   "decisive": jnp.mean(jax.nn.softmax(pred.astype(jnp.float32), -1).max(-1) > 0.5, axis=0)}
 
 
+def _jit(cfg: TrainConfig):
+    """jax.jit, with `xla_options.DETERMINISTIC` where `cfg.deterministic`: for the training steps
+    and their held-out evaluations, so a rerun gives the same parameters and logs the same figures."""
+    return functools.partial(jax.jit, compiler_options=xla_options.DETERMINISTIC if cfg.deterministic else None)
+
+
 def _data_parallel(step, mesh: Mesh | None, cfg: TrainConfig):
     """`step` jitted (with `xla_options.DETERMINISTIC` where `cfg.deterministic`); with a mesh,
     its inputs and outputs replicated over the mesh (the minibatch inside is split by `_split`)."""
-    options = xla_options.DETERMINISTIC if cfg.deterministic else None
     if mesh is None:
-        return jax.jit(step, compiler_options=options)
+        return _jit(cfg)(step)
     if cfg.batch_size % mesh.size:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {mesh.size} devices it is split over; "
                          f"use a multiple of {mesh.size}")
     whole = NamedSharding(mesh, P())
-    return jax.jit(step, in_shardings=whole, out_shardings=whole, compiler_options=options)
+    return _jit(cfg)(step, in_shardings=whole, out_shardings=whole)
 
 
 def _split(mesh: Mesh | None, batch):
@@ -146,13 +152,14 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
     return _data_parallel(train_step, mesh, cfg)
 
 
-def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, label_sigma_bins: float = 0.0):
-    @jax.jit
+def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, cfg: TrainConfig):
+    """Jitted (params, table, key) -> (loss, metrics) on a random `batch` of the table's steps,
+    with `cfg`'s label smoothing."""
     def evaluate(params, table: data.StepTable, key: jax.Array):
         obs, tokens = data.sample_batch(table, key, batch, tok)
-        return action_loss(params, model_cfg, obs, tokens, label_sigma_bins)
+        return action_loss(params, model_cfg, obs, tokens, cfg.label_sigma_bins)
 
-    return evaluate
+    return _jit(cfg)(evaluate)
 
 
 # --- the drafter (EAGLE), trained against a frozen target ---------------------------------
@@ -195,11 +202,10 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
     return _data_parallel(step, mesh, cfg)
 
 
-def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int):
-    @jax.jit
+def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int, cfg: TrainConfig):
     def evaluate(dparams, tparams, table: data.StepTable, tokens, key):
         i = jax.random.randint(key, (batch,), 0, table.size)
         obs = vla.Observation(image=table.image[i], instruction=table.instruction[i], proprio=table.proprio[i])
         return drafter.loss(dparams, tparams, model_cfg, obs, tokens[i])
 
-    return evaluate
+    return _jit(cfg)(evaluate)
