@@ -73,9 +73,10 @@ flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
 flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
-flags.DEFINE_bool("deterministic", True, "Every training and collection stage compiled with deterministic GPU "
-                  "reductions and convolutions (train and collect_demos --deterministic), so that a seed reproduces "
-                  "a stage's parameters and data. Not a setting of the build's recipe: a build resumes with either.")
+flags.DEFINE_bool("deterministic", True, "Every training, collection and evaluation stage compiled with deterministic "
+                  "GPU reductions and convolutions (train, collect_demos and evaluate --deterministic), so that a seed "
+                  "reproduces a stage's parameters, data and figures. Not a setting of the build's recipe: a build "
+                  "resumes with either.")
 flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
 flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
@@ -196,6 +197,7 @@ def plan(w: Path) -> list[Stage]:
     n_tasks = len(tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None))
     if "eval" not in FLAGS.skip:
         stages.append(Stage("eval", ["evaluate", "--method=ar", f"--checkpoint={final}", *scope,
+                                     *(["--deterministic"] if FLAGS.deterministic else []),
                                      f"--episodes={FLAGS.eval_episodes}", f"--num_envs={FLAGS.num_envs}",
                                      f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
                             {**{f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")}, **TIME},

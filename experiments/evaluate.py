@@ -43,6 +43,9 @@ cli.define_store_flag()
 flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache "
                   "and the executable store, e.g. before a sweep), print where its compile time went, run nothing and "
                   "write no results.")
+flags.DEFINE_bool("deterministic", False, "Compile the rollout with deterministic GPU reductions "
+                  "(heisd_jax.xla_options.DETERMINISTIC): a rerun then plays the same episodes, where the physics' "
+                  "scatter-add atomics can otherwise end a rare episode a step apart. Slower on a GPU.")
 flags.DEFINE_string("out", "results/eval.json", "Results file (JSON); resumed if it exists with the same settings.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 for _name in method_flags.define():  # --top_k, --budget, ...: every field of the VLA methods' settings
@@ -57,7 +60,7 @@ def main(argv):
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs or ev.default_num_envs(),
-                            refill=FLAGS.refill, tail_envs=FLAGS.tail_envs)
+                            refill=FLAGS.refill, tail_envs=FLAGS.tail_envs, deterministic=FLAGS.deterministic)
         for n in filter(None, (cfg.num_envs, cfg.tail_envs)):  # the tail's batch too, if any
             sharding.check_batch(n, sharding.env_mesh())
     except ValueError as e:

@@ -28,7 +28,8 @@ DEVICE_LOOPS = MappingProxyType({"xla_gpu_enable_command_buffer": ",".join(COMMA
 # embedding's gradient) and cuDNN's convolution algorithms (the ViT's patch embedding) become
 # deterministic ones, so one seed and one dataset give the same parameters on every run of one
 # program on one machine (across machines, kernel choices may still differ). Training steps and
-# their held-out evaluations are compiled with it unless `TrainConfig.deterministic` is False, and
-# collections unless `collect_demos --deterministic=false` (MJX's scatter-adds are atomics on a
-# GPU: without it a rare episode ends a step apart between runs). The CPU backend is deterministic anyway.
+# their held-out evaluations are compiled with it unless `TrainConfig.deterministic` is False,
+# collections unless `collect_demos --deterministic=false`, and evaluations where
+# `EvalConfig.deterministic` (MJX's scatter-adds are atomics on a GPU: without it a rare episode
+# ends a step apart between runs). The CPU backend is deterministic anyway.
 DETERMINISTIC = MappingProxyType({"xla_gpu_deterministic_ops": True})

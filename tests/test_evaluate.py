@@ -196,3 +196,15 @@ def test_a_seed_given_as_data_folds_the_keys_as_a_static_one():
     for seed in (0, 1, 7):
         np.testing.assert_array_equal(as_data(keys, np.int32(seed)), rollout.seeded_keys(keys, seed))
     np.testing.assert_array_equal(rollout.seeded_keys(keys, 0), keys)  # seed 0: the historical keys
+
+
+def test_a_deterministic_rollout_is_a_program_of_its_own_that_plays_the_same_episodes():
+    """`EvalConfig.deterministic` compiles the rollout with `xla_options.DETERMINISTIC` (a GPU's
+    atomics made deterministic; a CPU is so already, so the episodes are the same here), as a
+    program of its own: a caller's compiled rollouts keep both apart."""
+    env = TabletopEnv(tasks_lib.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    policy = methods.make_policy("expert", env)
+    rollouts = {}
+    plain, det = (ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=2, num_envs=2, deterministic=d),
+                              rollouts=rollouts) for d in (False, True))
+    assert plain == det and len(plain["left_block_plate"]) == 2 and len(rollouts) == 2

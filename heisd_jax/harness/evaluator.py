@@ -18,7 +18,7 @@ import numpy as np
 
 from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax import sharding
+from heisd_jax import sharding, xla_options
 from heisd_jax.harness import executable_store
 
 
@@ -32,6 +32,9 @@ class EvalConfig:
     # With refill: once the queue is empty and at most this many envs still run, they go on
     # in a batch of this size (`rollout.run_queue`); 0: the tail runs at num_envs.
     tail_envs: int = 0
+    # Compile the rollout with deterministic GPU reductions (`xla_options.DETERMINISTIC`: the
+    # physics' scatter-adds without atomics), so a rerun plays the same episodes; slower.
+    deterministic: bool = False
 
     def __post_init__(self):
         if not 1 <= self.episodes_per_task <= tasks_lib.N_EVAL_INIT_STATES:
@@ -121,8 +124,9 @@ class BatchRollout:
 
     def __init__(self, env: TabletopEnv, policy: rollout.Policy, num_envs: int, seed: int | None = 0,
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
-                 store: executable_store.ExecutableStore | None = None):
+                 store: executable_store.ExecutableStore | None = None, deterministic: bool = False):
         self.env, self.num_envs, self._tail_envs = env, num_envs, tail_envs
+        self._options = dict(xla_options.DETERMINISTIC) if deterministic else None
         self.queue = num_envs if queue is None else queue
         if self.queue < num_envs:
             raise ValueError(f"queue ({self.queue}) must hold at least num_envs ({num_envs}) episodes")
@@ -171,7 +175,8 @@ class BatchRollout:
         self.store = store if store is not None and executable_store.supported() else None
         # what names a program in the store; the starts (resets) and an env stage's program (the
         # physics) read no policy, so the env, its sharding and their inputs' shapes name them
-        self._env_identity = {"env": env.config, "tasks": env.tasks, "devices": [d.id for d in self.mesh.devices.flat]}
+        self._env_identity = {"env": env.config, "tasks": env.tasks, "devices": [d.id for d in self.mesh.devices.flat],
+                              **({"compiler_options": self._options} if self._options else {})}
         self._identity = {**self._env_identity, "caller": None if store is None else store.identity,
                           "policy": policy.name, "meta": policy.meta, "num_envs": num_envs, "queue": self.queue,
                           "seed": seed, "tail_envs": tail_envs, "max_steps": max_steps}
@@ -293,7 +298,7 @@ class BatchRollout:
         if compiled is not None:
             return compiled, split
         t0 = time.perf_counter()
-        compiled = executable_store.compile_storable(lowered) if key else lowered.compile()
+        compiled = executable_store.compile_storable(lowered, self._options) if key else lowered.compile(self._options)
         sharding.sync(f"heisd_jax.harness.evaluator: rollout {part} compiled")  # several hosts: the slowest counts
         t1 = time.perf_counter()
         split = {**split, "xla": t1 - t0}
@@ -415,11 +420,11 @@ def _plan(env, policy, cfg, todo, seed, devices, rollouts=None, store=None):
         todo = sorted(todo, key=lambda te: -int(env.tasks[te[0]].max_steps))
     per_call = -(-len(todo) // cfg.num_envs) * cfg.num_envs if refill else cfg.num_envs
     tail = cfg.tail_envs if refill else 0
-    key = (cfg.num_envs, per_call, tail, None if devices is None else tuple(d.id for d in devices))
+    key = (cfg.num_envs, per_call, tail, None if devices is None else tuple(d.id for d in devices), cfg.deterministic)
     run = (rollouts or {}).get(key)
     if run is None:
         run = BatchRollout(env, policy, cfg.num_envs, None if rollouts is not None else seed, devices, queue=per_call,
-                           tail_envs=tail, store=store)
+                           tail_envs=tail, store=store, deterministic=cfg.deterministic)
         if rollouts is not None:
             rollouts[key] = run
 

@@ -95,13 +95,14 @@ def jax_cache_bypassed():
                 compilation_cache.reset_cache()
 
 
-def compile_storable(lowered):
-    """`lowered.compile()` for storing: on a CPU with JAX's compilation cache bypassed, since
-    XLA:CPU executables that JAX loaded from it serialize without their kernels (module doc)."""
+def compile_storable(lowered, compiler_options: dict | None = None):
+    """`lowered.compile(compiler_options)` for storing: on a CPU with JAX's compilation cache
+    bypassed, since XLA:CPU executables that JAX loaded from it serialize without their kernels
+    (module doc)."""
     if jax.default_backend() != "cpu":
-        return lowered.compile()
+        return lowered.compile(compiler_options)
     with jax_cache_bypassed():
-        return lowered.compile()
+        return lowered.compile(compiler_options)
 
 
 def describe(obj: Any) -> Any:
