@@ -240,3 +240,13 @@ def test_build_target_label_smoothing_follows_its_schedule(tmp_path):
                         "--label_sigma_bins=2,-1"], capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode != 0 and "--label_sigma_bins: each value must be >= 0, got 2,-1" in r.stderr, r.stderr[-3000:]
     assert not (tmp_path / "w").exists()
+
+
+def test_build_target_evaluates_deterministically_unless_told_not_to(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    for flag, want in (("--deterministic", True), ("--nodeterministic", False)):
+        r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
+                            flag], capture_output=True, text=True, cwd=root, timeout=300)
+        assert r.returncode == 0, r.stderr[-3000:]
+        evaluation = next(line for line in r.stdout.splitlines() if line.startswith("eval "))
+        assert ("--deterministic" in evaluation.split()) == want, evaluation
