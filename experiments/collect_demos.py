@@ -120,7 +120,7 @@ def main(argv):
         return rollout.record_episodes(env, acting, keys, tids, n_steps, exec_noise=FLAGS.action_noise, limit=limit, **mix)
 
     programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
-    options = xla_options.DETERMINISTIC if FLAGS.deterministic else None
+    options = xla_options.determinism(FLAGS.deterministic)
     beta = jnp.float32(FLAGS.beta)
 
     def collect(batch, limit):

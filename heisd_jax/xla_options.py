@@ -33,3 +33,9 @@ DEVICE_LOOPS = MappingProxyType({"xla_gpu_enable_command_buffer": ",".join(COMMA
 # `EvalConfig.deterministic` (MJX's scatter-adds are atomics on a GPU: without it a rare episode
 # ends a step apart between runs). The CPU backend is deterministic anyway.
 DETERMINISTIC = MappingProxyType({"xla_gpu_deterministic_ops": True})
+
+
+def determinism(on: bool) -> dict | None:
+    """The compiler options of a program compiled deterministically where `on` (a fresh dict of
+    `DETERMINISTIC`, which callers may use as a key), else None (XLA's defaults)."""
+    return dict(DETERMINISTIC) if on else None

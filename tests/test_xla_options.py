@@ -22,12 +22,12 @@ def test_device_loops_is_a_valid_per_program_option():
 
 
 def test_deterministic_is_a_valid_per_program_option():
-    """`xla_options.DETERMINISTIC` (training steps' default) is an option this jaxlib's XLA knows,
+    """`xla_options.determinism(True)` (training steps' default) is an option this jaxlib's XLA knows,
     and a scatter-add (an embedding's gradient) compiled with it sums what it sums without."""
     def scatter(x, idx):
         return x.at[idx].add(1.0)
 
     x, idx = jnp.zeros(4), jnp.array([0, 0, 3, 1, 0])
     want = jax.jit(scatter)(x, idx)
-    assert (jax.jit(scatter, compiler_options=xla_options.DETERMINISTIC)(x, idx) == want).all()
+    assert (jax.jit(scatter, compiler_options=xla_options.determinism(True))(x, idx) == want).all()
     assert want.tolist() == [3.0, 1.0, 0.0, 1.0]

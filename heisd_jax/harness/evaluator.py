@@ -126,7 +126,7 @@ class BatchRollout:
                  devices: Sequence[jax.Device] | None = None, queue: int | None = None, tail_envs: int = 0,
                  store: executable_store.ExecutableStore | None = None, deterministic: bool = False):
         self.env, self.num_envs, self._tail_envs = env, num_envs, tail_envs
-        self._options = dict(xla_options.DETERMINISTIC) if deterministic else None
+        self._options = xla_options.determinism(deterministic)
         self.queue = num_envs if queue is None else queue
         if self.queue < num_envs:
             raise ValueError(f"queue ({self.queue}) must hold at least num_envs ({num_envs}) episodes")

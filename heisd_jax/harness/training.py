@@ -113,7 +113,7 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
 def _jit(cfg: TrainConfig):
     """jax.jit, with `xla_options.DETERMINISTIC` where `cfg.deterministic`: for the training steps
     and their held-out evaluations, so a rerun gives the same parameters and logs the same figures."""
-    return functools.partial(jax.jit, compiler_options=xla_options.DETERMINISTIC if cfg.deterministic else None)
+    return functools.partial(jax.jit, compiler_options=xla_options.determinism(cfg.deterministic))
 
 
 def _data_parallel(step, mesh: Mesh | None, cfg: TrainConfig):
