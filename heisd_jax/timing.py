@@ -143,14 +143,19 @@ def _is_device(line: str) -> bool:
 def kernel_summary(path: str | Path, calls: int, top: int) -> dict:
     """Per device timeline of a Perfetto trace (a GPU's process/stream, or the CPU's XLA
     threads): {"total_ms": summed event time per call, "count": events per call, "top":
-    [(event name, ms per call)], largest first}. Event times are summed as recorded (nested events add up)."""
+    [(event name, ms per call)], largest first, "launches": {top event name: events per call}}
+    (a kernel launched once per layer shows the layer count). Event times are summed as
+    recorded (nested events add up)."""
     out = {}
     for line, evs in _timelines(path).items():
         if _is_device(line):
-            c = collections.Counter()
+            c, n = collections.Counter(), collections.Counter()
             for e in evs:
                 c[e["name"]] += e["dur"] / 1e3 / calls  # us -> ms per call
-            out[line] = {"total_ms": sum(c.values()), "count": len(evs) / calls, "top": c.most_common(top)}
+                n[e["name"]] += 1
+            most = c.most_common(top)
+            out[line] = {"total_ms": sum(c.values()), "count": len(evs) / calls, "top": most,
+                         "launches": {name: n[name] / calls for name, _ in most}}
     return out
 
 

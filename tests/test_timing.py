@@ -76,4 +76,10 @@ def test_device_gaps_name_what_the_device_waited_for(tmp_path):
                      "host": "cuGraphLaunch (CudaGraph:17)", "host_ms": 4.9}
     assert second["ms"] == pytest.approx(0.2) and second["host"] == "jit_act"  # only the call covers it
     assert timing.device_gaps(path, min_ms=1.0)["/device:GPU:0 | Stream #7"] == [first]
-    assert timing.kernel_summary(path, calls=1, top=3)["/device:GPU:0 | Stream #7"]["total_ms"] == pytest.approx(2.8)
+    summary = timing.kernel_summary(path, calls=1, top=3)["/device:GPU:0 | Stream #7"]
+    assert summary["total_ms"] == pytest.approx(2.8)
+    assert summary["launches"] == {"conv": 1, "gemm": 1, "tail": 1}
+    with gzip.open(path, "wt") as f:  # the stream's kernels twice over, as in two calls
+        json.dump({"traceEvents": events + [dict(e, ts=e["ts"] + 10_000) for e in events[4:7]]}, f)
+    summary = timing.kernel_summary(path, calls=2, top=1)["/device:GPU:0 | Stream #7"]
+    assert summary["top"] == [("conv", pytest.approx(1.0))] and summary["launches"] == {"conv": 1.0}

@@ -21,7 +21,7 @@ device's time per step wherever the host keeps ahead of it:
 
 With `--trace_dir`, the default step is then traced for `--trace_calls` steps and summarised
 per device timeline (`timing.kernel_summary`: ms and kernel count per step, the largest
-kernels). Results are written after every variant, so a run cut short keeps what it measured.
+kernels and how often each runs per step); `--hlo_dir` writes its optimised HLO beside. Results are written after every variant, so a run cut short keeps what it measured.
 """
 
 from __future__ import annotations
@@ -53,6 +53,8 @@ flags.DEFINE_integer("reps", 3, "Timed runs per variant (median).")
 flags.DEFINE_integer("trace_calls", 5, "Steps traced (with --trace_dir).")
 flags.DEFINE_integer("top", 20, "Kernels listed per device timeline.")
 flags.DEFINE_string("trace_dir", "", "Trace the default step here (empty: no trace).")
+flags.DEFINE_string("hlo_dir", "", "Write the default step's optimised HLO here (train_step.hlo.txt.gz), where the "
+                    "trace's kernel names can be looked up.")
 flags.DEFINE_string("out", "results/train_step.json", "Results JSON.")
 
 
@@ -130,16 +132,19 @@ def main(_):
         result["variants"][name] = {"ms_per_step": round(ms, 3), "first_call_s": round(compile_s, 1)}
         print(f"{name:17s} {ms:8.3f} ms per step  (first call {compile_s:.1f} s)", flush=True)
         results_io.write_json_atomic(FLAGS.out, result)
-    if FLAGS.trace_dir:
+    if FLAGS.trace_dir or FLAGS.hlo_dir:
         fn = variant_fn("default", model_cfg, cfg, tok)
         jax.block_until_ready(fn(state, table, key))
+    if FLAGS.hlo_dir:
+        result["hlo"] = str(timing.write_hlo(fn, (state, table, key), f"{FLAGS.hlo_dir}/train_step.hlo.txt.gz"))
+    if FLAGS.trace_dir:
         path = timing.trace_calls(lambda: fn(state, table, key), FLAGS.trace_calls, FLAGS.trace_dir)
         if path is not None:
             result["trace"] = {"file": str(path), "per_step": timing.kernel_summary(path, FLAGS.trace_calls, FLAGS.top)}
             for line, s in result["trace"]["per_step"].items():
                 print(f"{line}: {s['total_ms']:.2f} ms, {s['count']:.0f} events per step")
                 for kname, ms in s["top"][:10]:
-                    print(f"  {ms:7.3f} ms  {kname[:100]}")
+                    print(f"  {ms:7.3f} ms  {s['launches'][kname]:6.1f} x  {kname[:100]}")
         results_io.write_json_atomic(FLAGS.out, result)
     print(f"results: {FLAGS.out}")
 
