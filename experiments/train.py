@@ -147,7 +147,7 @@ def train_vla(out: Path, cfg: training.TrainConfig):
     else:
         model_cfg = vla.VLAConfig(image_size=image_size, n_views=n_views, patch_size=FLAGS.patch_size,
                                   d_model=FLAGS.d_model, n_layers=FLAGS.n_layers,
-                                  mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
+                                  mlp_dim=vla.swiglu_width(FLAGS.d_model))
     mngr = checkpoint.manager(out / "state")
     state = training.init_state(model_cfg, cfg)
     if init is not None:

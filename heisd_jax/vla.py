@@ -529,6 +529,12 @@ class VLA(nn.Module):
         return logits, hidden
 
 
+def swiglu_width(d_model: int) -> int:
+    """The MLP width a trained target of width `d_model` gets (`train`): SwiGLU's 8/3 of the
+    width (its three matrices then hold what a 4x two-matrix MLP holds), a multiple of 8."""
+    return int(d_model * 8 / 3 // 8 * 8)
+
+
 def pad_to(mask, slots):
     """[B, T] -> [B, slots], padded with False."""
     return jnp.pad(mask, ((0, 0), (0, slots - mask.shape[1])))

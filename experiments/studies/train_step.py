@@ -43,9 +43,9 @@ from experiments import cli
 FLAGS = flags.FLAGS
 VARIANTS = ("default", "no_shift", "nondeterministic", "float32", "no_optimizer", "forward", "draw")
 flags.DEFINE_list("variants", list(VARIANTS), f"Variants to time, of {list(VARIANTS)}.")
-flags.DEFINE_integer("batch_size", 256, "Minibatch (build_target's default).")
-flags.DEFINE_integer("d_model", 256, "Decoder width (build_target's default).")
-flags.DEFINE_integer("n_layers", 8, "Decoder layers (build_target's default).")
+flags.DEFINE_integer("batch_size", training.TrainConfig.batch_size, "Minibatch (build_target's default).")
+flags.DEFINE_integer("d_model", vla.VLAConfig.d_model, "Decoder width (build_target's default).")
+flags.DEFINE_integer("n_layers", vla.VLAConfig.n_layers, "Decoder layers (build_target's default).")
 flags.DEFINE_integer("image_size", 64, "Each view's size in pixels (two views, as a build's --wrist data).")
 flags.DEFINE_integer("table_steps", 20000, "Random steps in the device-resident step table.")
 flags.DEFINE_integer("steps", 50, "Steps per timed run.")
@@ -113,7 +113,7 @@ def main(_):
     if unknown:
         raise app.UsageError(f"--variants: unknown {unknown}; valid: {list(VARIANTS)}")
     model_cfg = vla.VLAConfig(image_size=FLAGS.image_size, n_views=2, d_model=FLAGS.d_model, n_layers=FLAGS.n_layers,
-                              mlp_dim=int(FLAGS.d_model * 8 / 3 // 8 * 8))
+                              mlp_dim=vla.swiglu_width(FLAGS.d_model))
     cfg = training.TrainConfig(steps=10**6, batch_size=FLAGS.batch_size, warmup_steps=300, image_shift=2,
                                label_sigma_bins=0.6)
     host = synthetic_table(model_cfg, FLAGS.table_steps)
