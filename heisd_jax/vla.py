@@ -518,14 +518,15 @@ class VLA(nn.Module):
         hidden = self.final_norm(x)
         return hidden, self.head(hidden[:, logits_from:]).astype(jnp.float32), (k, v)
 
-    def __call__(self, obs: Observation, tokens):
-        """Initialisation / teacher forcing entry: prompt + tokens [B, T] -> logits of all."""
+    def __call__(self, obs: Observation, tokens, logits_from: int = 0):
+        """Initialisation / teacher forcing entry: prompt + tokens [B, T] -> logits of the
+        positions from `logits_from` on [B, P + T - logits_from, V], hidden [B, P + T, D]."""
         x = jnp.concatenate([self.prompt_embeddings(obs), self.embed_tokens(tokens)], 1)
         n = x.shape[1]
         key_ok = jnp.concatenate([prompt_key_mask(self.cfg, obs.instruction), jnp.ones(tokens.shape, bool)], 1)
         mask = causal_mask(n, n)[None] & key_ok[:, None, :]
         positions = jnp.broadcast_to(jnp.arange(n), (x.shape[0], n))
-        hidden, logits, _ = self.run(x, None, positions, None, mask)
+        hidden, logits, _ = self.run(x, None, positions, None, mask, logits_from)
         return logits, hidden
 
 
@@ -560,10 +561,12 @@ def init_params(cfg: VLAConfig, key: jax.Array) -> dict:
 
 
 @at_config_precision
-def forward(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, training: bool = False):
-    """Teacher-forced pass over prompt + tokens (no cache): logits [B, P+T, V], hidden.
-    `training`: the variant a training step differentiates fastest (`VLA.training`)."""
-    return VLA(cfg, training=training).apply({"params": params}, obs, tokens)
+def forward(params, cfg: VLAConfig, obs: Observation, tokens: jnp.ndarray, training: bool = False,
+            logits_from: int = 0):
+    """Teacher-forced pass over prompt + tokens (no cache): logits [B, P+T-logits_from, V] (of
+    the positions from `logits_from` on), hidden [B, P+T, D]. `training`: the variant a
+    training step differentiates fastest (`VLA.training`)."""
+    return VLA(cfg, training=training).apply({"params": params}, obs, tokens, logits_from)
 
 
 def prefill(params, cfg: VLAConfig, obs: Observation):

@@ -6,6 +6,7 @@ import shutil
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from envs import demos, language
@@ -67,6 +68,29 @@ def test_training_continues_from_a_bf16_policy_in_float32_master_weights(dataset
         np.testing.assert_array_equal(own, new.astype(jnp.float32))  # the stored values, exactly
     state, _ = training.make_train_step(CFG, cfg, tok)(state, table, jax.random.PRNGKey(0))
     assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(state.params))  # updates stay in float32
+
+
+def test_action_loss_is_the_cross_entropy_at_the_action_positions_with_or_without_padding():
+    """`action_loss` (the head at the 7 action positions only, the sequence optionally padded to
+    a multiple) equals the cross-entropy read off the whole teacher-forced pass's logits, since
+    no position attends to a later one."""
+    params = jax.tree.map(lambda x: x * 3.0, vla.init_params(CFG, jax.random.PRNGKey(1)))
+    rng = np.random.default_rng(0)
+    obs = vla.Observation(image=jnp.asarray(rng.integers(0, 255, (4, *CFG.image_shape)), jnp.uint8),
+                          instruction=jnp.asarray(np.r_[1, 5, 6, 2, [0] * (CFG.text_len - 4)][None].repeat(4, 0), jnp.int32),
+                          proprio=jnp.asarray(rng.normal(size=(4, 8)), jnp.float32))
+    tokens = jnp.asarray(CFG.first_action_id + rng.integers(0, 256, (4, 7)), jnp.int32)
+    logits, _ = vla.forward(params, CFG, obs, tokens)
+    p = CFG.prompt_len
+    pred = vla.action_logits(CFG, logits[:, p - 1: p + 6])
+    want = optax.softmax_cross_entropy(pred, training.soft_bin_targets(tokens - CFG.first_action_id, 256, 2.0)).mean()
+    assert (p + 7) % 24, "the padding below must change the sequence's length"
+    for multiple in (1, 24):
+        loss, metrics = jax.jit(lambda q, m=multiple: training.action_loss(q, CFG, obs, tokens, 2.0, m))(params)
+        np.testing.assert_allclose(float(loss), float(want), rtol=1e-5)
+        np.testing.assert_array_equal(metrics["token_acc"], jnp.mean(pred.argmax(-1) == tokens - CFG.first_action_id, 0))
+    with pytest.raises(ValueError, match="seq_multiple"):
+        training.TrainConfig(seq_multiple=0)
 
 
 def test_soft_bin_targets_are_distributions_with_the_label_as_mode():

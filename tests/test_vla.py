@@ -152,6 +152,13 @@ def test_training_forward_is_the_inference_forward(model):
     logits, hidden = jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t, training=True))(params, obs, toks)
     np.testing.assert_allclose(logits, ref_logits, atol=1e-4)
     np.testing.assert_allclose(hidden, ref_hidden, atol=1e-4)
+    # The head at the positions from `logits_from` on only (the training loss reads the action
+    # positions): those positions' logits, the same hidden states.
+    start = CFG.prompt_len - 1
+    tail, hidden = jax.jit(lambda p, o, t: vla.forward(p, CFG, o, t, training=True, logits_from=start))(params, obs, toks)
+    assert tail.shape == (B, 8, CFG.vocab_size)
+    np.testing.assert_allclose(tail, ref_logits[:, start:], atol=1e-4)
+    np.testing.assert_allclose(hidden, ref_hidden, atol=1e-4)
 
 
 def test_unrolled_inference_decodes_the_same_tokens(model):

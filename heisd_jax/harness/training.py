@@ -45,6 +45,7 @@ class TrainConfig:
     image_shift: int = 0  # random-shift augmentation of the camera image, pixels
     seed: int = 0
     deterministic: bool = True  # compile the step with xla_options.DETERMINISTIC (GPU run-to-run determinism)
+    seq_multiple: int = 1  # the teacher-forced sequence padded to a multiple of this (`action_loss`)
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1 or self.lr <= 0:
@@ -55,6 +56,8 @@ class TrainConfig:
             raise ValueError(f"image_shift must be >= 0, got {self.image_shift}")
         if self.label_sigma_bins < 0:
             raise ValueError(f"label_sigma_bins must be >= 0, got {self.label_sigma_bins}")
+        if self.seq_multiple < 1:
+            raise ValueError(f"seq_multiple must be >= 1, got {self.seq_multiple}")
 
 
 @struct.dataclass
@@ -93,14 +96,21 @@ def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma: float) -> jnp.ndarra
 
 
 def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray,
-                label_sigma_bins: float = 0.0):
+                label_sigma_bins: float = 0.0, seq_multiple: int = 1):
     """Mean cross-entropy of the action tokens given the prompt and the previous tokens, and
     metrics per action dimension [7]: greedy token accuracy, mean absolute bin error, and the
     share of tokens whose greedy bin has probability > 0.5 ("decisive": drafts and retrieved
-    actions are accepted where the target's choice is clear, not a near tie)."""
-    logits, _ = vla.forward(params, model_cfg, obs, tokens, training=True)
+    actions are accepted where the target's choice is clear, not a near tie).
+
+    The output head runs at the 7 positions the loss reads only. `seq_multiple`: the sequence
+    (prompt + 7 tokens) is padded to a multiple of it with copies of the last token, which no
+    earlier position attends to (causal attention): the same loss, at shapes whose products
+    may run on better-aligned kernels (`experiments.studies.train_step` measures it)."""
     p = model_cfg.prompt_len
-    pred = vla.action_logits(model_cfg, logits[:, p - 1: p - 1 + ACTION_DIM])  # [B, 7, 256]
+    pad = -(p + tokens.shape[1]) % seq_multiple
+    inputs = jnp.concatenate([tokens, jnp.repeat(tokens[:, -1:], pad, 1)], 1) if pad else tokens
+    logits, _ = vla.forward(params, model_cfg, obs, inputs, training=True, logits_from=p - 1)
+    pred = vla.action_logits(model_cfg, logits[:, :ACTION_DIM])  # [B, 7, 256]
     target = tokens - model_cfg.first_action_id
     soft = soft_bin_targets(target, pred.shape[-1], label_sigma_bins)
     loss = optax.softmax_cross_entropy(pred, soft).mean()
@@ -144,7 +154,7 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
         obs, tokens = _split(mesh, data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok,
                                                      cfg.image_shift, model_cfg.n_views))
         (loss, metrics), grads = jax.value_and_grad(action_loss, has_aux=True)(
-            state.params, model_cfg, obs, tokens, cfg.label_sigma_bins)
+            state.params, model_cfg, obs, tokens, cfg.label_sigma_bins, cfg.seq_multiple)
         updates, opt_state = opt.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         return TrainState(step=state.step + 1, params=params, opt_state=opt_state), {"loss": loss, **metrics}
