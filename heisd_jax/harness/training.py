@@ -102,7 +102,8 @@ def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: 
     share of tokens whose greedy bin has probability > 0.5 ("decisive": drafts and retrieved
     actions are accepted where the target's choice is clear, not a near tie).
 
-    The output head runs at the 7 positions the loss reads only. `seq_multiple`: the sequence
+    The output head runs from the first action position on (not at the prompt's positions
+    before it, whose logits the loss never reads). `seq_multiple`: the sequence
     (prompt + 7 tokens) is padded to a multiple of it with copies of the last token, which no
     earlier position attends to (causal attention): the same loss, at shapes whose products
     may run on better-aligned kernels (`experiments.studies.train_step` measures it)."""
