@@ -56,6 +56,8 @@ flags.DEFINE_float("lr", 3e-4, "Peak learning rate.")
 flags.DEFINE_integer("warmup_steps", 500, "Linear warm-up steps.")
 flags.DEFINE_float("holdout", 0.05, "Fraction of episodes held out for validation.")
 flags.DEFINE_float("label_sigma_bins", 0.0, "Ordinal label smoothing: Gaussian targets of this std in bins (0: one-hot).")
+flags.DEFINE_integer("seq_multiple", training.TrainConfig.seq_multiple, "--model=vla: pad the teacher-forced "
+                     "sequence to a multiple of this (the same loss; 1: no padding), for aligned kernels.")
 flags.DEFINE_integer("image_shift", 0, "Random-shift image augmentation, pixels (0: off).")
 flags.DEFINE_integer("log_every", 200, "Steps between log lines.")
 flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoints.")
@@ -243,7 +245,7 @@ def main(argv):
         cfg = training.TrainConfig(steps=FLAGS.steps, batch_size=FLAGS.batch_size, lr=FLAGS.lr,
                                 warmup_steps=FLAGS.warmup_steps, label_sigma_bins=FLAGS.label_sigma_bins,
                                 image_shift=FLAGS.image_shift, seed=FLAGS.seed,
-                                deterministic=FLAGS.deterministic)
+                                deterministic=FLAGS.deterministic, seq_multiple=FLAGS.seq_multiple)
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)

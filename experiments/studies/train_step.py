@@ -12,8 +12,8 @@ waited for once (median ms per step over `--reps` such runs), so that the figure
 device's time per step wherever the host keeps ahead of it:
 
   default           the step as `build_target` trains
-  seq160            the teacher-forced sequence padded to a multiple of 16 (156 -> 160 tokens:
-                    `TrainConfig.seq_multiple`, the same loss)
+  unpadded          the teacher-forced sequence at its own length (156 tokens) instead of
+                    padded to `TrainConfig.seq_multiple` (160; the same loss)
   no_shift          without the random-shift augmentation
   nondeterministic  compiled without `xla_options.DETERMINISTIC`
   float32           float32 activations
@@ -43,7 +43,7 @@ from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
 
 FLAGS = flags.FLAGS
-VARIANTS = ("default", "seq160", "no_shift", "nondeterministic", "float32", "no_optimizer", "forward", "draw")
+VARIANTS = ("default", "unpadded", "no_shift", "nondeterministic", "float32", "no_optimizer", "forward", "draw")
 flags.DEFINE_list("variants", list(VARIANTS), f"Variants to time, of {list(VARIANTS)}.")
 flags.DEFINE_integer("batch_size", training.TrainConfig.batch_size, "Minibatch (build_target's default).")
 flags.DEFINE_integer("d_model", vla.VLAConfig.d_model, "Decoder width (build_target's default).")
@@ -72,10 +72,10 @@ def synthetic_table(cfg: vla.VLAConfig, n: int, seed: int = 0) -> data.StepTable
 def variant_fn(name: str, model_cfg: vla.VLAConfig, cfg: training.TrainConfig, tok: ActionTokenizer):
     """(jitted fn(state, table, key) -> (state, out), the config it runs) for variant `name`."""
     run_cfg = dataclasses.replace(model_cfg, dtype="bfloat16")
-    if name in ("default", "seq160", "no_shift", "nondeterministic", "float32"):
+    if name in ("default", "unpadded", "no_shift", "nondeterministic", "float32"):
         cfg = dataclasses.replace(cfg, image_shift=0 if name == "no_shift" else cfg.image_shift,
                                   deterministic=name != "nondeterministic",
-                                  seq_multiple=16 if name == "seq160" else cfg.seq_multiple)
+                                  seq_multiple=1 if name == "unpadded" else cfg.seq_multiple)
         run_cfg = dataclasses.replace(run_cfg, dtype="float32") if name == "float32" else run_cfg
         return training.make_train_step(run_cfg, cfg, tok)
 

@@ -45,7 +45,10 @@ class TrainConfig:
     image_shift: int = 0  # random-shift augmentation of the camera image, pixels
     seed: int = 0
     deterministic: bool = True  # compile the step with xla_options.DETERMINISTIC (GPU run-to-run determinism)
-    seq_multiple: int = 1  # the teacher-forced sequence padded to a multiple of this (`action_loss`)
+    # The teacher-forced sequence padded to a multiple of this (`action_loss`: the same loss). 16 turns
+    # a build's 156 tokens into 160, whose attention products run on aligned tensor-core kernels:
+    # 18.4 against 21.2 ms per step on an H200 (`experiments.studies.train_step`, variant `unpadded`).
+    seq_multiple: int = 16
 
     def __post_init__(self):
         if self.steps < 1 or self.batch_size < 1 or self.lr <= 0:
