@@ -40,7 +40,7 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, logs, build.json).")
 flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
-flags.DEFINE_integer("rounds", 2, "DAgger rounds after the first (behaviour-cloned) policy.")
+flags.DEFINE_integer("rounds", 3, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
 flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or "
                   "these tasks, get N times the episodes per task in the demonstrations and every DAgger round; a "
