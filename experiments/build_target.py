@@ -71,7 +71,7 @@ flags.DEFINE_enum("param_dtype", "bfloat16", ["float32", "bfloat16"], "The dtype
                   "float32 master weights and computes in bfloat16.")
 flags.DEFINE_integer("d_model", 256, "Decoder width.")
 flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
-flags.DEFINE_integer("drafter_steps", 2000, "Drafter optimizer steps.")
+flags.DEFINE_integer("drafter_steps", 4000, "Drafter optimizer steps.")
 flags.DEFINE_integer("seed", 0, "Every training stage's seed (initialisation and minibatch order).")
 flags.DEFINE_bool("deterministic", True, "Every training, collection and evaluation stage compiled with deterministic "
                   "GPU reductions and convolutions (train, collect_demos and evaluate --deterministic), so that a seed "
@@ -79,11 +79,11 @@ flags.DEFINE_bool("deterministic", True, "Every training, collection and evaluat
                   "resumes with either.")
 flags.DEFINE_integer("train_devices", 0, "Local devices each training stage runs on, data parallel (0: all of them; "
                      "experiments.train --devices); --batch_size must be a multiple.")
-flags.DEFINE_integer("rollout_episodes", 0, "Episodes per task in which the final target drives alone (beta 0, "
-                     "a stage of ~3-6 minutes on an H100): added to the drafter's training states, so it learns to "
-                     "predict the target where the target itself goes, and with --datastore_source=rollouts the "
-                     "datastore's contents; 0: none (the drafter sees the demonstrations and the DAgger rounds, the "
-                     "last of which the previous policy drove alone).")
+flags.DEFINE_integer("rollout_episodes", 25, "Episodes per task in which the final target drives alone (beta 0, "
+                     "~2 minutes on an H200): added to the drafter's training states, so it learns to predict the "
+                     "target where the target itself goes, and with --datastore_source=rollouts the datastore's "
+                     "contents; 0: none (the drafter sees the demonstrations and the DAgger rounds, the last of which "
+                     "the previous policy drove alone). Skipped with the drafter unless the datastore needs them.")
 flags.DEFINE_enum("datastore_source", "demos", ["demos", "rollouts"], "The retrieval datastore's episodes: the "
                   "expert demonstrations, or the final target's own rollouts (--rollout_episodes; build_datastore "
                   "--values=rollout: keyed and valued by what the target executed).")
