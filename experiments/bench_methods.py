@@ -167,7 +167,7 @@ def main(argv):
         raise app.UsageError(f"batch sizes must be in 1..--record_envs={FLAGS.record_envs}, got {sizes}")
     common = common_settings()
     method_list = [(n, {**common, **s}) for n, s in [("ar", {})] + [m for m in method_list if m != ("ar", {})]]
-    cli.check_cost_tables(method_list, sizes, FLAGS.checkpoint, FLAGS.datastore)  # now, not after the recording
+    cli.check_methods(method_list, sizes, FLAGS.checkpoint, FLAGS.datastore)  # now, not after the recording
     env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
     t0 = time.perf_counter()
     states, ar_actions, done = replay.record(env, methods.make_policy(FLAGS.record_method, env,

@@ -257,12 +257,18 @@ def method_label(name: str, settings: dict) -> str:
     return name + (":" + ",".join(f"{k}={v}" for k, v in settings.items()) if settings else "")
 
 
-def check_cost_tables(method_list: list[tuple[str, dict]], batch_sizes, checkpoint=None, datastore=None) -> None:
-    """`app.UsageError` naming every method and batch size (rows per device) whose budget=auto
-    would find no decode-cost table in --cost_cache (`methods.missing_cost_tables`): called
-    before anything runs, unless --calibrate_costs measures them."""
+def check_methods(method_list: list[tuple[str, dict]], batch_sizes, checkpoint=None, datastore=None) -> None:
+    """`app.UsageError`, before anything runs, naming a method whose draft trees or candidates
+    do not fit the target's KV cache (`methods.check_fits`), and every method and batch size
+    (rows per device) whose budget=auto would find no decode-cost table in --cost_cache
+    (`methods.missing_cost_tables`; unless --calibrate_costs measures them)."""
     from heisd_jax.harness import methods  # noqa: PLC0415
 
+    for n, s in method_list:
+        try:
+            methods.check_fits(n, checkpoint=checkpoint, datastore=datastore, **s)
+        except (ValueError, FileNotFoundError) as e:
+            raise app.UsageError(f"{method_label(n, s)}: {e}") from e
     f = flags.FLAGS
     if f.calibrate_costs:
         return

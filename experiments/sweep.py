@@ -164,10 +164,10 @@ def main(argv):
              for (m, s), su, sd, b in itertools.product(method_list, per_suite, seeds, num_envs)]
     done = store.done()
     todo = [c for c in cells if results_io.cell_key(c) not in done]
-    for m, s in method_list:  # a missing decode-cost table is refused now, not when its cell comes up
+    for m, s in method_list:  # a method that does not fit, or lacks a cost table, is refused now, not at its cell
         rows = sorted({c["num_envs"] // jax.device_count() for c in todo if (c["method"], c["settings"]) == (m, s)})
         if rows:
-            cli.check_cost_tables([(m, s)], rows, FLAGS.checkpoint, FLAGS.datastore)
+            cli.check_methods([(m, s)], rows, FLAGS.checkpoint, FLAGS.datastore)
     n_eps = {su: len(t) * episodes for su, t in per_suite.items()}
     total = sum(n_eps[c["suite"]] for c in todo)
     print(f"sweep: {len(cells)} cells, {len(cells) - len(todo)} already in {FLAGS.out}, {len(todo)} to run "

@@ -35,6 +35,8 @@ CASES = [
     ("bench_methods", ["--target_scale=huge"], "<shipped|llama2-7b|llama-1b>"),
     ("bench_methods", ["--methods=ar;heisd:budget=fixed;heisd", "--batch_sizes=1", "--record_envs=1",
                        "--cost_cache=/nonexistent/costs"], "has none for heisd at batch [1]: add --calibrate_costs"),
+    ("bench_methods", ["--methods=ar;heisd:budget=fixed,n_candidates=16", "--batch_sizes=1", "--record_envs=1"],
+     "heisd:budget=fixed,n_candidates=16: 16 retrieved + 4 recent candidates need"),
     ("bench_scale", ["--target_scale=llama3"], "<shipped|llama2-7b|llama-1b>"),
     ("scale_check", ["--dtypes=float16"], "--dtypes: unknown ['float16']; valid: float32, bfloat16"),
     ("studies.op_invariance", ["--numerics=float16"], "valid are bfloat16, f32_act_bf16_products, float32"),

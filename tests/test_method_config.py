@@ -108,3 +108,15 @@ def test_a_method_computes_in_its_targets_own_dtype_unless_given():
     mixed = {**params, "head": jax.tree.map(lambda x: x.astype(jnp.bfloat16), params["head"])}
     with pytest.raises(ValueError, match=r"target parameters in \['bfloat16', 'float32'\]"):
         methods.in_numerics(tiny_models.CFG, methods.Numerics(), mixed)
+
+
+def test_what_does_not_fit_the_targets_cache_is_refused_from_configs_alone():
+    # The shipped target: every decoding method's defaults fit; more candidates than its cache
+    # holds are refused with the limit, as make_policy would refuse them after loading.
+    for name in methods.DECODING_METHODS:
+        methods.check_fits(name)
+    methods.check_fits("heisd", n_candidates=8)
+    with pytest.raises(ValueError, match="n_candidates \\+ recent_candidates must be <= 12"):
+        methods.check_fits("heisd", n_candidates=16)
+    with pytest.raises(ValueError, match="cache slots"):
+        methods.check_fits("drafter", top_k=16, depth=6, total_tokens=96)

@@ -571,6 +571,26 @@ def missing_cost_tables(name: str, batch_sizes, *, checkpoint: str | Path | None
                                 batch_sizes, cost_cache)
 
 
+def check_fits(name: str, *, checkpoint: str | Path | None = None, datastore: str | Path | None = None,
+               **settings) -> None:
+    """ValueError where method `name` at `settings` cannot decode with the target at
+    `checkpoint`: its draft trees, or its retrieved and recent candidates, need more KV-cache
+    slots than the target has (the check `make_policy` makes when it builds the policy).
+    Read from configs and files alone, so an entry point can refuse before it records or
+    compiles anything."""
+    method = get(name)
+    given = check_settings(name, settings)
+    if "drafter" not in method.loads:
+        return
+    _check_fits(name, _paths(method, checkpoint=checkpoint, datastore=datastore), given)
+
+
+def _check_fits(name: str, paths: dict[str, Path], given: dict) -> None:
+    store = paths.get("datastore")
+    run = _config(name, given, None if store is None else load_calibration(store, retrieval.read_meta(store)))
+    run.decode.check_fits(checkpoint.read_config(paths["checkpoint"]))
+
+
 def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
     run = _config(name, given, load_calibration(paths["datastore"], retrieval.read_meta(paths["datastore"])))
     drafting = [b for b in batch_sizes if run.decode.budget.mode == "auto" and run.decode.budget.drafts_at(b)]
