@@ -266,7 +266,7 @@ def check_methods(method_list: list[tuple[str, dict]], batch_sizes, checkpoint=N
 
     for n, s in method_list:
         try:
-            methods.check_fits(n, checkpoint=checkpoint, datastore=datastore, **s)
+            methods.check_fits(n, checkpoint=checkpoint, **s)
         except (ValueError, FileNotFoundError) as e:
             raise app.UsageError(f"{method_label(n, s)}: {e}") from e
     f = flags.FLAGS

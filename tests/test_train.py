@@ -71,8 +71,8 @@ def test_training_continues_from_a_bf16_policy_in_float32_master_weights(dataset
 
 
 def test_action_loss_is_the_cross_entropy_at_the_action_positions_with_or_without_padding():
-    """`action_loss` (the head at the 7 action positions only, the sequence optionally padded to
-    a multiple) equals the cross-entropy read off the whole teacher-forced pass's logits, since
+    """`action_loss` (the head from the first action position on, the sequence optionally padded
+    to a multiple) equals the cross-entropy read off the whole teacher-forced pass's logits, since
     no position attends to a later one."""
     params = jax.tree.map(lambda x: x * 3.0, vla.init_params(CFG, jax.random.PRNGKey(1)))
     rng = np.random.default_rng(0)

@@ -571,24 +571,20 @@ def missing_cost_tables(name: str, batch_sizes, *, checkpoint: str | Path | None
                                 batch_sizes, cost_cache)
 
 
-def check_fits(name: str, *, checkpoint: str | Path | None = None, datastore: str | Path | None = None,
-               **settings) -> None:
+def check_fits(name: str, *, checkpoint: str | Path | None = None, **settings) -> None:
     """ValueError where method `name` at `settings` cannot decode with the target at
     `checkpoint`: its draft trees, or its retrieved and recent candidates, need more KV-cache
     slots than the target has (the check `make_policy` makes when it builds the policy).
-    Read from configs and files alone, so an entry point can refuse before it records or
-    compiles anything."""
+    Read from the target's config alone (a datastore's calibration changes no tree or
+    candidate count), so an entry point can refuse before it records or compiles anything."""
     method = get(name)
     given = check_settings(name, settings)
-    if "drafter" not in method.loads:
-        return
-    _check_fits(name, _paths(method, checkpoint=checkpoint, datastore=datastore), given)
+    if "drafter" in method.loads:
+        _check_fits(name, _paths(method, checkpoint=checkpoint), given)
 
 
 def _check_fits(name: str, paths: dict[str, Path], given: dict) -> None:
-    store = paths.get("datastore")
-    run = _config(name, given, None if store is None else load_calibration(store, retrieval.read_meta(store)))
-    run.decode.check_fits(checkpoint.read_config(paths["checkpoint"]))
+    _config(name, given, None).decode.check_fits(checkpoint.read_config(paths["checkpoint"]))
 
 
 def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
