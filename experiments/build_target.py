@@ -57,13 +57,14 @@ flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the ex
                   "the last visits the policy's own states.")
 flags.DEFINE_integer("steps", 6000, "Optimizer steps of the first policy (with --start: of training it further on "
                      "the demonstrations; 0: use it as it is).")
-flags.DEFINE_integer("dagger_steps", 3000, "Optimizer steps of each DAgger round's fine-tuning.")
+flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning (the aggregate "
+                     "grows each round: at 6,000 x 256 the third round still sees ~1.6 epochs of it).")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
-flags.DEFINE_list("label_sigma_bins", ["0.6"], "Ordinal label smoothing (Gaussian targets of this std in bins; 0: "
+flags.DEFINE_list("label_sigma_bins", ["2", "2", "0.6"], "Ordinal label smoothing (Gaussian targets of this std in bins; 0: "
                   "one-hot), one value per policy trained: the first, then each DAgger round's fine-tuning (the last "
-                  "value repeats), e.g. 2,2,0.6 for wide labels early and sharp ones at the end, as the shipped "
-                  "target was made (with --start and --steps=0 the first value goes unused). Smaller makes the greedy bin stand out more (a more confident target); 0.6, the "
+                  "value repeats). The default gives wide labels to the first policy and the first round and sharp "
+                  "ones after, as the shipped target was made (with --start and --steps=0 the first value goes unused). Smaller makes the greedy bin stand out more (a more confident target); 0.6, the "
                   "shipped target's last, lets its tokens survive bf16 rounding (docs/target.md).")
 flags.DEFINE_enum("param_dtype", "bfloat16", ["float32", "bfloat16"], "The dtype every policy of the build is stored "
                   "in (train --export_param_dtype); a policy runs in its stored dtype, so bfloat16 makes bf16 the "
