@@ -29,8 +29,10 @@
 # most 10 minutes, /tmp/gpu_job/out (emptied by each `start`: unpack what `poll` brought back
 # first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results.tar.part-* (15 MiB
 # parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
-# there yet is named and skipped) and each build_target work folder's finished stack (build.json,
-# logs, the latest complete vla*, drafter, datastore, eval_ar.json); with neither, everything.
+# there yet is named and skipped), each build_target work folder's finished stack (build.json,
+# logs, the latest complete vla*, drafter, datastore, eval_ar.json) and every small result file
+# (*.json, *.json.gz, *.log, *.png, *.txt under 2 MB, outside datasets and checkpoints), so a
+# measurement's output comes back unnamed; with no PATH and no build, everything.
 # JAX's compilation cache persists in $GPU_JOB_WORK/jax_cache (GPU_JOB_WORK: /tmp/gpu_job)
 # unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
 set -uo pipefail
@@ -82,6 +84,11 @@ pack() {  # the PATHs given and a build's finished stack; with neither, everythi
   done
   if [ -z "$builds" ] && [ $# -eq 0 ]; then
     items=(.)
+  else  # and every small result file (JSON, logs, plots) outside datasets and checkpoints, named or not
+    local small; small=$(cd "$d" && find . \( -name 'vla[0-9]*' -o -name 'run[0-9]*' -o -name drafter -o -name datastore \
+      -o -name demos -o -name 'dagger[0-9]*' -o -name target_rollouts -o -name 'jax_cache*' \) -prune -o -type f \
+      \( -name '*.json' -o -name '*.json.gz' -o -name '*.log' -o -name '*.png' -o -name '*.txt' \) -size -2M -print)
+    for f in $small; do items+=("${f#./}"); done
   fi
   [ ${#items[@]} -eq 0 ] && return 0
   (cd "$d" && printf '%s\n' "${items[@]}" | awk '!seen[$0]++' | tar cf - --files-from=- --ignore-failed-read) \

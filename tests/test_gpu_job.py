@@ -1,7 +1,8 @@
 """experiments/gpu_job.sh, with a stand-in `nvidia-smi`: in per-gpu mode command i runs on GPU i
 (its own CUDA_VISIBLE_DEVICES, $OUT folder and compilation cache), all of them before the
 script returns, and more commands than GPUs are refused before any runs; a poll brings back
-the files it names and, always, a build's newest finished policy."""
+the files it names, every small result file (JSON, logs) and, always, a build's newest
+finished policy."""
 
 import io
 import os
@@ -55,7 +56,7 @@ def test_per_gpu_command_named_gpus(tmp_path):
 
 
 @pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
-def test_poll_packs_the_named_files_and_the_builds_newest_finished_policy(tmp_path):
+def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_policy(tmp_path):
     work = tmp_path / "work"
     build = work / "out" / "b"
     for path in ("logs/train1.log", "vla1/0/params", "vla2/0/params", "vla3/partial"):  # vla3 still being written
@@ -64,6 +65,11 @@ def test_poll_packs_the_named_files_and_the_builds_newest_finished_policy(tmp_pa
     (build / "build.json").write_text("{}")
     (work / "out" / "profile.json").write_text("{}")
     (work / "out" / "job.log").write_text("== exit 0\n")
+    (work / "out" / "gpu0").mkdir()
+    (work / "out" / "gpu0" / "eval_ar.json").write_text("{}")  # a result nobody named
+    (work / "out" / "gpu0" / "trace.json").write_bytes(b" " * (3 << 20))  # too large to come back unnamed
+    (build / "demos").mkdir()
+    (build / "demos" / "meta.json").write_text("{}")  # a dataset's
     (work / "pid").write_text("999999999")  # a job that has ended
     fake = tmp_path / "bin"
     fake.mkdir()
@@ -78,5 +84,5 @@ def test_poll_packs_the_named_files_and_the_builds_newest_finished_policy(tmp_pa
     parts = sorted((tmp_path / "back").glob("results.tar.part-*"))
     with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts))) as tar:
         names = {n.rstrip("/") for n in tar.getnames()}
-    assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params"} <= names
-    assert not any(n.startswith(("b/vla1", "b/vla3", "job.log")) for n in names)
+    assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params", "job.log", "gpu0/eval_ar.json"} <= names
+    assert not any(n.startswith(("b/vla1", "b/vla3", "b/demos", "gpu0/trace")) for n in names)
