@@ -1,8 +1,10 @@
 """Closed-loop success of evaluations against a baseline evaluated on the same initial states:
 per suite, the success rate, its difference from the baseline, and the paired counts (episodes
 of one initial state that succeed under the baseline only / under the other only); per
-evaluation, steps and target passes per episode, the share of skipped steps and whether every
-suite is within --tolerance points of the baseline (the success guard of issue 23).
+evaluation, steps and target passes per episode, the steps its successful episodes took (mean
+and 90th percentile: a policy that finishes tasks more slowly loses episodes to the time
+limit), the share of skipped steps and whether every suite is within --tolerance points of
+the baseline (the success guard of issue 23).
 
   python -m experiments.compare_evals experiments/results/eval_ar_7c71161_h100.json \\
       experiments/results/eval_heisd_fixed_target_h100.json.gz [MORE.json ...] [--tolerance=2]
@@ -68,6 +70,7 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
         s["diff_points"] = 100.0 * (s["rate"] - s["base_rate"])
     episodes = [e for t in eo for e in eo[t]]
     steps = float(np.mean([e["steps"] for e in episodes]))
+    success_steps = {name: _success_steps(eps) for name, eps in (("base", eb), ("other", eo))}
     passes = [e.get("decode", {}).get("target_passes") for e in episodes]
     skipped = sum(e.get("decode", {}).get("skipped", 0.0) for e in episodes)
     return dict(
@@ -77,28 +80,40 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
         worst_diff_points=min(s["diff_points"] for s in suites.values()),
         guard=all(s["diff_points"] >= -tolerance for s in suites.values()),
         steps_per_episode=steps,
+        success_steps=success_steps["other"], base_success_steps=success_steps["base"],
         target_passes_per_episode=float(np.mean(passes)) if all(p is not None for p in passes) else None,
         skipped_share=skipped / sum(e["steps"] for e in episodes),
         base_only=sum(s["base_only"] for s in suites.values()),
         other_only=sum(s["other_only"] for s in suites.values()))
 
 
+def _success_steps(episodes: dict) -> dict | None:
+    """Mean and 90th percentile of the steps the successful episodes took (None: none succeeded)."""
+    steps = [e["steps"] for eps in episodes.values() for e in eps if e["success"]]
+    return dict(mean=float(np.mean(steps)), p90=float(np.percentile(steps, 90))) if steps else None
+
+
+def _steps_text(s: dict | None) -> str:
+    return "-" if s is None else f"{s['mean']:.0f} ({s['p90']:.0f})"
+
+
 def table(base: dict, rows: list[dict], tolerance: float) -> str:
     suites = list(rows[0]["suites"]) if rows else []
-    head = "| evaluation | " + " | ".join(suites) + " | mean | steps / ep | passes / ep | skipped | " \
-           f"base-only / other-only | within {tolerance:g} pts |"
-    lines = [head, "|" + "---|" * (len(suites) + 7)]
+    head = "| evaluation | " + " | ".join(suites) + " | mean | steps / ep | steps / success (p90) | passes / ep | " \
+           f"skipped | base-only / other-only | within {tolerance:g} pts |"
+    lines = [head, "|" + "---|" * (len(suites) + 8)]
     if rows:
         r0 = rows[0]
         lines.append(f"| {label(base)} (baseline) | " + " | ".join(f"{100 * r0['suites'][s]['base_rate']:.1f}%"
                                                                    for s in suites)
-                     + f" | {100 * r0['base_mean_rate']:.2f}% | | | | | |")
+                     + f" | {100 * r0['base_mean_rate']:.2f}% | | {_steps_text(r0['base_success_steps'])} | | | | |")
     for r in rows:
         cells = " | ".join(f"{100 * r['suites'][s]['rate']:.1f}% ({r['suites'][s]['diff_points']:+.1f})" for s in suites)
         passes = "-" if r["target_passes_per_episode"] is None else f"{r['target_passes_per_episode']:.0f}"
         lines.append(f"| {r['label']} | {cells} | {100 * r['mean_rate']:.2f}% | {r['steps_per_episode']:.1f} | "
-                     f"{passes} | {100 * r['skipped_share']:.0f}% | {r['base_only']} / {r['other_only']} | "
-                     f"{'yes' if r['guard'] else 'no'} ({r['worst_diff_points']:+.1f}) |")
+                     f"{_steps_text(r['success_steps'])} | {passes} | {100 * r['skipped_share']:.0f}% | "
+                     f"{r['base_only']} / {r['other_only']} | {'yes' if r['guard'] else 'no'} "
+                     f"({r['worst_diff_points']:+.1f}) |")
     return "\n".join(lines)
 
 

@@ -32,6 +32,22 @@ def test_paired_counts_rates_and_guard():
     assert compare_evals.compare(BASE, other, tolerance=25.0)["guard"]
 
 
+def test_steps_of_successful_episodes_only():
+    """A slower policy shows in the steps its successes take; failures (time-outs) do not count."""
+    slow = result("heisd", {"a": [True, True, False, True], "b": [True] * 4, "c": [True, False, True, True]}, SUITE_OF)
+    for i, e in enumerate(e for eps in slow["episodes"].values() for e in eps):
+        e["steps"] = 1000 if not e["success"] else 10 + 10 * i  # successes: 10, 20, 40, ..., 120
+    r = compare_evals.compare(BASE, slow, tolerance=2.0)
+    wins = [10 + 10 * i for i, e in enumerate(e for eps in slow["episodes"].values() for e in eps) if e["success"]]
+    assert r["success_steps"]["mean"] == pytest.approx(sum(wins) / len(wins))
+    assert r["success_steps"]["p90"] <= max(wins) < 1000
+    assert r["base_success_steps"] == dict(mean=10.0, p90=10.0)
+    text = compare_evals.table(BASE, [r], 2.0)
+    assert "steps / success (p90)" in text and "| 10 (10) |" in text
+    none = result("heisd", {t: [False] * 4 for t in "abc"}, SUITE_OF)
+    assert compare_evals.compare(BASE, none, tolerance=2.0)["success_steps"] is None
+
+
 def test_labels_name_the_settings_given_and_the_commit():
     r = dict(result("heisd", {"a": [True]}, SUITE_OF), commit="abcdef0123")
     r["settings"].update(k_skip=3, datastore="/tmp/x/store_ro", checkpoint="ckpt")
