@@ -580,11 +580,11 @@ def check_fits(name: str, *, checkpoint: str | Path | None = None, **settings) -
     method = get(name)
     given = check_settings(name, settings)
     if "drafter" in method.loads:
-        _check_fits(name, _paths(method, checkpoint=checkpoint), given)
+        _check_fits(name, _paths(method, checkpoint=checkpoint)["checkpoint"], given)
 
 
-def _check_fits(name: str, paths: dict[str, Path], given: dict) -> None:
-    _config(name, given, None).decode.check_fits(checkpoint.read_config(paths["checkpoint"]))
+def _check_fits(name: str, target: Path, given: dict) -> None:  # apart: `checkpoint` is the module here
+    _config(name, given, None).decode.check_fits(checkpoint.read_config(target))
 
 
 def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
