@@ -40,7 +40,7 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, logs, build.json).")
 flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
-flags.DEFINE_integer("rounds", 3, "DAgger rounds after the first (behaviour-cloned) policy.")
+flags.DEFINE_integer("rounds", 4, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
 flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or "
                   "these tasks, get N times the episodes per task in the demonstrations and every DAgger round; a "
@@ -57,8 +57,8 @@ flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the ex
                   "the last visits the policy's own states.")
 flags.DEFINE_integer("steps", 6000, "Optimizer steps of the first policy (with --start: of training it further on "
                      "the demonstrations; 0: use it as it is).")
-flags.DEFINE_integer("dagger_steps", 6000, "Optimizer steps of each DAgger round's fine-tuning (the aggregate "
-                     "grows each round: at 6,000 x 256 the third round still sees ~1.6 epochs of it).")
+flags.DEFINE_integer("dagger_steps", 4500, "Optimizer steps of each DAgger round's fine-tuning (the aggregate "
+                     "grows each round: at 4,500 x 256 the fourth round sees ~0.9 epochs of it).")
 flags.DEFINE_float("lr", 5e-4, "Peak learning rate (fine-tuning rounds use half).")
 flags.DEFINE_integer("batch_size", 256, "Training minibatch.")
 flags.DEFINE_list("label_sigma_bins", ["2", "2", "0.6"], "Ordinal label smoothing (Gaussian targets of this std in bins; 0: "
