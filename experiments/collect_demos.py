@@ -29,6 +29,7 @@ from envs import camera, demos, expert, rollout, scene, tasks as tasks_lib
 from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
 from heisd_jax import sharding, xla_options
+from heisd_jax.harness import executable_store as store_lib
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -58,6 +59,7 @@ flags.DEFINE_bool("deterministic", True, "Compile the collection with determinis
                   "(heisd_jax.xla_options.DETERMINISTIC), so a rerun writes the same dataset. Without it the "
                   "simulator's scatter-adds use atomics on a GPU, and a rare episode ends a step apart from one run "
                   "to the next (docs/target.md); with it the device run takes ~1.35x as long.")
+cli.define_store_flag()
 
 
 def main(argv):
@@ -119,9 +121,17 @@ def main(argv):
         mix = dict(teacher=policy, beta=beta) if dagger else {}
         return rollout.record_episodes(env, acting, keys, tids, n_steps, exec_noise=FLAGS.action_noise, limit=limit, **mix)
 
-    programs, seconds = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0)
+    programs, seconds, stored = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0), []
     options = xla_options.determinism(FLAGS.deterministic)
     beta = jnp.float32(FLAGS.beta)
+    # What the program closes over beyond its inputs' shapes (the code is in the store's key):
+    # the policy's parameters are an input, so every DAgger round of a build, driven by another
+    # policy of one architecture, loads the first round's program without tracing it.
+    store = store_lib.ExecutableStore(FLAGS.executable_store) if FLAGS.executable_store else None
+    identity = {"program": "experiments.collect_demos", "env": env.config, "tasks": env.tasks,
+                "devices": [d.id for d in mesh.devices.flat], "compiler_options": options,
+                "policy": learner.name if dagger else "expert", "meta": learner.meta if dagger else None,
+                "n_steps": n_steps, "exec_noise": FLAGS.action_noise}
 
     def collect(batch, limit):
         """One batch's final states and first `limit` steps of trajectories on the host; each
@@ -130,8 +140,9 @@ def main(argv):
         size = batch[0].shape[0]
         if size not in programs:
             with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
-                programs[size] = jax.jit(record_fn, compiler_options=options).lower(
-                    params, beta, *batch, jnp.int32(limit)).compile()
+                programs[size], hit = store_lib.compile_or_load(
+                    store, identity, jax.jit(record_fn), (params, beta, *batch, jnp.int32(limit)), options)
+            stored.append(hit)
         t1 = time.perf_counter()
         final, traj = jax.block_until_ready(programs[size](params, beta, *batch, jnp.int32(limit)))
         t2 = time.perf_counter()
@@ -179,7 +190,8 @@ def main(argv):
     except BaseException:
         writer.abort()
         raise
-    print(f"time: {sum(seconds.values()):.0f}s = compile {seconds['compile']:.0f}s ({len(programs)} programs) + run "
+    print(f"time: {sum(seconds.values()):.0f}s = compile {seconds['compile']:.0f}s ({len(programs)} programs, "
+          f"{sum(stored)} loaded from the executable store) + run "
           f"{seconds['run']:.0f}s ({len(batches)} batches over {mesh.size} devices) + fetch {seconds['fetch']:.0f}s + "
           f"host {seconds['host']:.0f}s (episodes sliced and written)")
     if dagger:

@@ -134,6 +134,54 @@ def test_a_bad_entry_is_a_miss_and_is_rewritten(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == [store.path(key).name]  # no temporary left behind
 
 
+def test_compile_or_load_traces_once_per_key(tmp_path):
+    """The first call compiles and stores; a second with the same identity and input shapes
+    loads without tracing and computes the same; another identity, or no store, compiles."""
+    traces = []
+
+    def fresh():  # a new function each time, so that JAX's in-memory trace cache cannot answer
+        def program(x):
+            traces.append(1)
+            return _program(x)
+        return jax.jit(program)
+
+    store, x = xs.ExecutableStore(tmp_path), np.linspace(-1.0, 1.0, 12, dtype=np.float32).reshape(4, 3)
+    first, hit = xs.compile_or_load(store, {"program": "cholesky"}, fresh(), (x,))
+    assert not hit and len(traces) == 1
+    second, hit = xs.compile_or_load(store, {"program": "cholesky"}, fresh(), (x,))
+    assert hit and len(traces) == 1
+    np.testing.assert_array_equal(np.asarray(second(x)), np.asarray(first(x)))
+    assert not xs.compile_or_load(store, {"program": "other"}, fresh(), (x,))[1] and len(traces) == 2
+    assert not xs.compile_or_load(store, {"program": "cholesky"}, fresh(), (x[:3],))[1] and len(traces) == 3
+    assert not xs.compile_or_load(None, {"program": "cholesky"}, fresh(), (x,))[1] and len(traces) == 4
+
+
+@pytest.mark.slow
+def test_a_warm_collection_loads_its_program_and_writes_the_same_dataset(tmp_path):
+    """collect_demos keys its program by what makes it (a DAgger round's policy parameters are
+    an input), so a second collection with the same settings loads it and writes the same
+    episodes and labels."""
+    from envs import demos  # noqa: PLC0415
+
+    cmd = [sys.executable, "-m", "experiments.collect_demos", "--suites=spatial", "--tasks=left_block_plate",
+           "--episodes_per_task=2", "--num_envs=2", "--image_size=16", "--compilation_cache=",
+           f"--executable_store={tmp_path / 'store'}"]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    logs = []
+    for i in range(2):
+        out = subprocess.run([*cmd, f"--out={tmp_path / f'd{i}'}"], cwd=ROOT, env=env, capture_output=True, text=True,
+                             timeout=900)
+        assert out.returncode == 0, out.stderr[-2000:]
+        logs.append(out.stdout)
+    assert "(1 programs, 0 loaded from the executable store)" in logs[0], logs[0]
+    assert "(1 programs, 1 loaded from the executable store)" in logs[1], logs[1]
+    one, two = demos.DemoDataset(tmp_path / "d0"), demos.DemoDataset(tmp_path / "d1")
+    assert one.episodes == two.episodes and len(one.episodes) == 2
+    for i in range(2):
+        a, b = one.episode(i), two.episode(i)
+        assert all(np.array_equal(a[f], b[f]) for f in a)
+
+
 @pytest.mark.slow
 def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path):
     # 3 episodes in 2 slots: a queue, so several programs

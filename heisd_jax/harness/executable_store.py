@@ -105,6 +105,25 @@ def compile_storable(lowered, compiler_options: dict | None = None):
         return lowered.compile(compiler_options)
 
 
+def compile_or_load(store: "ExecutableStore | None", identity: Any, jitted, inputs: tuple,
+                    compiler_options: dict | None = None):
+    """(`jitted` compiled for `inputs`, whether it came from `store`): loaded under `identity`
+    and the inputs' signature without tracing, else traced, lowered, compiled and saved there.
+    With no store (or where stores are not `supported`) it is compiled as usual. For a program
+    outside `BatchRollout` that several processes compile alike, such as each DAgger round's
+    collection."""
+    key = store.key(identity, inputs) if store is not None and supported() else None
+    loaded = store.load(key) if key else None
+    if loaded is not None:
+        return loaded, True
+    lowered = jitted.trace(*inputs).lower()
+    if key is None:
+        return lowered.compile(compiler_options), False
+    compiled = compile_storable(lowered, compiler_options)
+    store.save(key, compiled)
+    return compiled, False
+
+
 def describe(obj: Any) -> Any:
     """A JSON-able, process-independent description of `obj`: dataclasses by field, containers
     by item, arrays by shape, dtype and a digest of their bytes. Raises `Undescribable` for an
