@@ -52,7 +52,12 @@ class ExpertConfig:
     fine_tol: float = 0.006  # m: place waypoint reached
     grasp_z_tol: float = 0.006  # m: grasp height reached ...
     grasp_xy_tol: float = 0.012  # m: ... within this of the object's axis (then close the jaw)
-    gain: float = 1.2  # action per (error / max step)
+    gain: float = 1.2  # translation action per (error / max step)
+    # Rotation action per (error / max step). At the translation's 1.2 the yaw command
+    # saturates beyond ~0.1 rad of error, so its labels are nearly all at the two extreme bins
+    # (a bang-bang the policy learns as a sign); lower keeps it proportional over more of the
+    # turn, at a step or two more per grasp.
+    rot_gain: float = 1.2
     action_noise: float = 0.0  # std of Gaussian noise added to the 6 motion dims
     push_clearance: float = 0.045  # m from object centre to TCP behind it when pushing
     push_height: float = 0.022  # TCP height while pushing
@@ -178,7 +183,7 @@ def act(env: TabletopEnv, state: EnvState, es: ExpertState, key: jax.Array, cfg:
     rot_err = rotations.mat_to_rotvec(r_des @ r_cur.T)
     motion = jnp.concatenate([
         err / env.config.control.max_pos_step * cfg.gain,
-        rot_err / env.config.control.max_rot_step * cfg.gain,
+        rot_err / env.config.control.max_rot_step * cfg.rot_gain,
     ])
     bound = jnp.where(phase == PUSH, cfg.push_speed, 1.0)
     motion = jnp.concatenate([_saturate(motion[:3], bound), _saturate(motion[3:], 1.0)])

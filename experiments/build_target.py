@@ -41,6 +41,9 @@ flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, l
 flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
 flags.DEFINE_integer("rounds", 4, "DAgger rounds after the first (behaviour-cloned) policy.")
+flags.DEFINE_float("expert_rot_gain", None, "The labelling expert's rotation gain in every collection "
+                   "(collect_demos --expert_rot_gain; unset: the expert's own, envs.expert.ExpertConfig.rot_gain): "
+                   "lower makes its yaw labels proportional instead of bang-bang (docs/target.md).")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
 flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or "
                   "these tasks, get N times the episodes per task in the demonstrations and every DAgger round; a "
@@ -160,12 +163,13 @@ def plan(w: Path) -> list[Stage]:
     scope = [f"--suites={FLAGS.suites}"] + ([f"--tasks={','.join(FLAGS.tasks)}"] if FLAGS.tasks else [])
     # Suite weights shape the training data only; the evaluation runs every task's fixed states.
     collect = scope + ([f"--suite_weights={','.join(FLAGS.suite_weights)}"] if FLAGS.suite_weights else [])
+    labels = [] if FLAGS.expert_rot_gain is None else [f"--expert_rot_gain={FLAGS.expert_rot_gain:g}"]  # every collection's
     determinism = [] if FLAGS.deterministic else ["--deterministic=false"]
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
-    stages = [Stage("demos", ["collect_demos", *collect, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
+    stages = [Stage("demos", ["collect_demos", *collect, *labels, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
                     {"kept": r"kept (\d+/\d+)", **TIME}),
@@ -182,7 +186,8 @@ def plan(w: Path) -> list[Stage]:
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
         adapt = [f"--weights_from={w / f'dagger{r - 1}'}"] if FLAGS.adapt_weights and r > 1 else []
-        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *adapt, *determinism, f"--policy={_policy(w, r - 1)}",
+        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *labels, *adapt, *determinism,
+                                           f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
                                            f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
                                            "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
@@ -208,7 +213,8 @@ def plan(w: Path) -> list[Stage]:
     if FLAGS.rollout_episodes and ("drafter" not in FLAGS.skip or datastore_from_rollouts):
         if "drafter" not in FLAGS.skip:
             data.append(str(rollouts))
-        stages.append(Stage("target_rollouts", ["collect_demos", *scope, *determinism, f"--policy={final}", "--beta=0",
+        stages.append(Stage("target_rollouts", ["collect_demos", *scope, *labels, *determinism, f"--policy={final}",
+                                                "--beta=0",
                                                 f"--episodes_per_task={FLAGS.rollout_episodes}",
                                                 f"--first_episode={100000 * (FLAGS.rounds + 1)}",
                                                 f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],
@@ -259,6 +265,8 @@ def _settings() -> dict:
         out["seed"] = FLAGS.seed
     if FLAGS.adapt_weights:  # likewise
         out["adapt_weights"] = True
+    if FLAGS.expert_rot_gain is not None:  # likewise
+        out["expert_rot_gain"] = FLAGS.expert_rot_gain
     if FLAGS.param_dtype != "float32":  # likewise
         out["param_dtype"] = FLAGS.param_dtype
     return out
@@ -341,6 +349,8 @@ def main(argv):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1, got {getattr(FLAGS, name)}")
     _schedule("label_sigma_bins")
+    if FLAGS.expert_rot_gain is not None and FLAGS.expert_rot_gain <= 0:
+        raise app.UsageError(f"--expert_rot_gain must be > 0, got {FLAGS.expert_rot_gain}")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
     if FLAGS.train_devices < 0:

@@ -52,6 +52,9 @@ flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's a
                    "per env and step.")
 flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the executed motion actions (diversity); "
                    "the recorded labels are the expert's clean actions.")
+flags.DEFINE_float("expert_rot_gain", expert.ExpertConfig.rot_gain, "The expert's rotation action per (error / max "
+                   "step): at the default its yaw labels are nearly all at the two extreme bins; lower keeps them "
+                   "proportional over more of a turn (envs.expert.ExpertConfig.rot_gain).")
 flags.DEFINE_integer("first_episode", 0, "Index of the first training initial state (to extend a dataset).")
 flags.DEFINE_string("out", "data/demos", "Output dataset directory.")
 flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (only once the new one is complete).")
@@ -75,6 +78,8 @@ def main(argv):
         raise app.UsageError("--beta needs --policy (without one the expert drives every step)")
     if FLAGS.first_episode < 0:
         raise app.UsageError("--first_episode must be >= 0")
+    if FLAGS.expert_rot_gain <= 0:
+        raise app.UsageError(f"--expert_rot_gain must be > 0, got {FLAGS.expert_rot_gain}")
     mesh = device_mesh(FLAGS.devices, FLAGS.num_envs)
     try:
         failures = cli.failure_weights(FLAGS.weights_from) if FLAGS.weights_from else []
@@ -95,7 +100,8 @@ def main(argv):
         env = TabletopEnv(task_list, EnvConfig(camera=camera.CameraConfig(
             height=FLAGS.image_size, width=FLAGS.image_size, wrist=FLAGS.wrist)))
     cam = env.config.camera
-    policy = expert.policy(env)
+    expert_cfg = expert.ExpertConfig(rot_gain=FLAGS.expert_rot_gain)
+    policy = expert.policy(env, expert_cfg)
     meta = dict(
         suites=sorted({t.suite for t in task_list}),
         tasks=[{"name": t.name, "suite": t.suite, "instruction": t.instruction} for t in task_list],
@@ -103,6 +109,7 @@ def main(argv):
         executed_action_noise=FLAGS.action_noise,
         labels="expert actions on the policy's states (DAgger)" if dagger else "clean expert actions",
         policy=FLAGS.policy or "expert", beta=FLAGS.beta if dagger else 1.0,
+        expert=dataclasses.asdict(expert_cfg),
         episode_weights={t.name: tasks_lib.episode_weight(t, weights) for t in task_list},
         split="train",
     )
@@ -131,6 +138,7 @@ def main(argv):
     identity = {"program": "experiments.collect_demos", "env": env.config, "tasks": env.tasks,
                 "devices": [d.id for d in mesh.devices.flat], "compiler_options": options,
                 "policy": learner.name if dagger else "expert", "meta": learner.meta if dagger else None,
+                "expert": expert_cfg,
                 "n_steps": n_steps, "exec_noise": FLAGS.action_noise}
 
     def collect(batch, limit):

@@ -250,3 +250,24 @@ def test_build_target_evaluates_deterministically_unless_told_not_to(tmp_path):
         assert r.returncode == 0, r.stderr[-3000:]
         evaluation = next(line for line in r.stdout.splitlines() if line.startswith("eval "))
         assert ("--deterministic" in evaluation.split()) == want, evaluation
+
+
+def test_build_target_passes_the_expert_rotation_gain_to_every_collection(tmp_path):
+    """--expert_rot_gain reaches the demonstrations, every DAgger round and the target's
+    rollouts (the expert labels them all), no training stage, and the build's record; unset, no
+    stage names it (the expert's own default); a bad value is one line, before any stage."""
+    root = Path(__file__).resolve().parents[1]
+    base = [sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run", "--rounds=2"]
+    r = subprocess.run([*base, "--expert_rot_gain=0.5"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    named = {line.split()[0] for line in r.stdout.splitlines() if "--expert_rot_gain=0.5" in line.split()}
+    assert named == {"demos", "dagger1", "dagger2", "target_rollouts"}, r.stdout
+    r = subprocess.run(base, capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0 and "--expert_rot_gain" not in r.stdout, r.stdout
+    settings = ("from absl import flags; from experiments import build_target as b\n"
+                "flags.FLAGS(['x', '--expert_rot_gain=0.5']); print(b._settings()['expert_rot_gain'])")
+    r = subprocess.run([sys.executable, "-c", settings], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode == 0 and r.stdout.split() == ["0.5"], r.stderr[-3000:]
+    r = subprocess.run([*base, "--expert_rot_gain=0"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode != 0 and "--expert_rot_gain must be > 0, got 0.0" in r.stderr, r.stderr[-3000:]
+    assert not (tmp_path / "w").exists()

@@ -68,3 +68,23 @@ def test_host_loop_steps_the_episodes_run_episodes_runs():
     got = [next(states) for _ in range(4)][-1]
     np.testing.assert_array_equal(np.asarray(got.step), [3, 3])
     np.testing.assert_allclose(np.asarray(got.data.qpos), np.asarray(want.data.qpos), rtol=0, atol=1e-6)
+
+
+def test_rotation_gain_scales_the_rotation_command_alone():
+    """`ExpertConfig.rot_gain` scales the rotation part of the expert's action (where neither
+    saturates) and leaves translation and the jaw as they are."""
+    import jax  # noqa: PLC0415
+
+    env = TabletopEnv(tasks.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    tids, keys = env.cycling_eval_starts(1)
+    state = jax.tree.map(lambda x: x[0], jax.vmap(env.reset)(keys, tids))
+
+    def action(rot_gain):
+        cfg = expert.ExpertConfig(rot_gain=rot_gain)
+        return np.asarray(expert.act(env, state, expert.init(state, env), jax.random.PRNGKey(0), cfg)[0])
+
+    small, double = action(0.01), action(0.02)
+    np.testing.assert_array_equal(small[:3], double[:3])
+    np.testing.assert_array_equal(small[6], double[6])
+    assert np.abs(small[3:6]).max() > 1e-4
+    np.testing.assert_allclose(double[3:6], 2 * small[3:6], rtol=1e-5, atol=1e-7)
