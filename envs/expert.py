@@ -53,10 +53,10 @@ class ExpertConfig:
     grasp_z_tol: float = 0.006  # m: grasp height reached ...
     grasp_xy_tol: float = 0.012  # m: ... within this of the object's axis (then close the jaw)
     gain: float = 1.2  # translation action per (error / max step)
-    # Rotation action per (error / max step). At the translation's 1.2 the yaw command
-    # saturates beyond ~0.1 rad of error, so its labels are nearly all at the two extreme bins
-    # (a bang-bang the policy learns as a sign); lower keeps it proportional over more of the
-    # turn, at a step or two more per grasp.
+    # Rotation action per (error / max step). At the translation's 1.2 the rotation command
+    # saturates beyond ~0.1 rad of error and a step turns 1.2x the error (an overshoot); lower
+    # keeps it proportional over more of a turn (docs/target.md: the expert then finishes
+    # sooner and saturates fewer yaw labels).
     rot_gain: float = 1.2
     action_noise: float = 0.0  # std of Gaussian noise added to the 6 motion dims
     push_clearance: float = 0.045  # m from object centre to TCP behind it when pushing

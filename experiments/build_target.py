@@ -43,7 +43,7 @@ flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions
 flags.DEFINE_integer("rounds", 4, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_float("expert_rot_gain", None, "The labelling expert's rotation gain in every collection "
                    "(collect_demos --expert_rot_gain; unset: the expert's own, envs.expert.ExpertConfig.rot_gain): "
-                   "lower makes its yaw labels proportional instead of bang-bang (docs/target.md).")
+                   "lower keeps its yaw labels proportional over more of a turn (docs/target.md).")
 flags.DEFINE_integer("dagger_episodes", 25, "Episodes per task in each DAgger round.")
 flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,...: the tasks of these suites, or "
                   "these tasks, get N times the episodes per task in the demonstrations and every DAgger round; a "

@@ -53,8 +53,8 @@ flags.DEFINE_float("beta", 0.0, "DAgger: probability of executing the expert's a
 flags.DEFINE_float("action_noise", 0.1, "Std of Gaussian noise added to the executed motion actions (diversity); "
                    "the recorded labels are the expert's clean actions.")
 flags.DEFINE_float("expert_rot_gain", expert.ExpertConfig.rot_gain, "The expert's rotation action per (error / max "
-                   "step): at the default its yaw labels are nearly all at the two extreme bins; lower keeps them "
-                   "proportional over more of a turn (envs.expert.ExpertConfig.rot_gain).")
+                   "step): at the default it saturates beyond ~0.1 rad of error; lower keeps its labels proportional "
+                   "over more of a turn (envs.expert.ExpertConfig.rot_gain, docs/target.md).")
 flags.DEFINE_integer("first_episode", 0, "Index of the first training initial state (to extend a dataset).")
 flags.DEFINE_string("out", "data/demos", "Output dataset directory.")
 flags.DEFINE_bool("overwrite", False, "Replace an existing dataset at --out (only once the new one is complete).")
