@@ -96,22 +96,21 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
 
 
 def _tables():
-    """(train, validation) step tables on the host, and the (image size, views) of the data."""
-    parts, val_host = [], None
-    for i, path in enumerate(FLAGS.demos):
-        train_eps, val_eps = data.random_episode_split(path, FLAGS.holdout)
-        parts.append(data.load_steps(path, train_eps))
-        if i == 0:
-            val_host = data.load_steps(path, val_eps) if val_eps else parts[0]
-        print(f"{path}: {parts[-1].size} training steps from {len(train_eps)} episodes, {len(val_eps)} held out")
-    shapes = {p.image.shape[1:] for p in parts}
-    if len(shapes) != 1:
-        raise app.UsageError(f"the datasets of --demos hold images of different shapes: {sorted(shapes)}")
-    (h, w, _), = shapes
+    """(train, validation) step tables on the host, and the (image size, views) of the data:
+    the training episodes of every --demos dataset in one table, the first dataset's held-out
+    episodes (its training episodes where it holds none out) for validation."""
+    splits = [data.random_episode_split(path, FLAGS.holdout) for path in FLAGS.demos]
+    for path, (train_eps, val_eps) in zip(FLAGS.demos, splits):
+        print(f"{path}: {len(train_eps)} training episodes, {len(val_eps)} held out")
+    try:
+        host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)])
+    except ValueError as e:
+        raise app.UsageError(f"--demos: {e}") from e
+    first_train, first_val = splits[0]
+    val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
+    h, w, _ = host.image.shape[1:]
     if w % h:
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
-    host = data.StepTable(*(np.concatenate([getattr(p, f) for p in parts])
-                            for f in ("image", "proprio", "instruction", "action")))
     n = sharding.local_mesh(FLAGS.devices).size
     print(f"{host.size} training steps in all; {n} x {jax.devices()[0].device_kind}"
           f"{', data parallel' if n > 1 else ''}")

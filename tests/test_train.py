@@ -110,6 +110,39 @@ def test_split_is_by_episode_and_disjoint(dataset):
     assert len(va) == 4 and not set(tr) & set(va) and sorted(tr + va) == list(range(20))
 
 
+def test_a_table_of_several_datasets_holds_their_episodes_steps_in_order(dataset, tmp_path):
+    ds = demos.DemoDataset(dataset)
+    table = data.load_step_table([(str(dataset), [3, 1]), (str(dataset), None)])
+    order = [3, 1, *range(len(ds))]
+    assert table.size == sum(ds.episodes[i]["length"] for i in order)
+    for field in ("image", "proprio", "action"):
+        np.testing.assert_array_equal(getattr(table, field), np.concatenate([ds.episode(i)[field] for i in order]))
+    np.testing.assert_array_equal(table.instruction[0], language.to_ids(ds.episodes[3]["instruction"]))
+    # Datasets of other image shapes cannot share a table: the error names both.
+    other = demos.DatasetWriter(tmp_path / "small", {"image_size": 8})
+    other.add_shard({f: v[:10] if f != "image" else v[:10, :8, :8] for f, v in ds.shard(0).items()},
+                    [dict(ds.episodes[0], start=0, length=10)])
+    with pytest.raises(ValueError, match="different shapes.*small"):
+        data.load_step_table([(str(dataset), None), (str(other.finalize()), None)])
+
+
+def test_a_longer_table_compiles_the_draw_again_not_the_update(dataset, caplog):
+    """A DAgger round trains on a longer table than the round before. The update's program does
+    not depend on the table's length, so the persistent cache answers it in every later round
+    with the same settings; only the minibatch draw compiles again."""
+    full = jax.device_put(data.load_steps(str(dataset)))
+    part = jax.device_put(data.load_steps(str(dataset), list(range(12))))
+    tok = ActionTokenizer.fit(np.asarray(full.action), CFG.vocab_size)
+    cfg = training.TrainConfig(steps=10, batch_size=8, warmup_steps=1, image_shift=1)
+    state, step = training.init_state(CFG, cfg), training.make_train_step(CFG, cfg, tok)
+    key = jax.random.PRNGKey(0)
+    with jax.log_compiles(True), caplog.at_level("WARNING"):
+        for table in (part, full, full):
+            state, _ = step(state, table, key)
+    compiled = [r.getMessage().split()[1] for r in caplog.records if r.getMessage().startswith("Compiling ")]
+    assert compiled.count("jit(draw)") == 2 and compiled.count("jit(update)") == 1, compiled
+
+
 @pytest.fixture(scope="module")
 def policy_ckpt(tmp_path_factory):
     params = vla.init_params(CFG, jax.random.PRNGKey(1))

@@ -7,6 +7,8 @@ the jitted train step by random indices, so the accelerator never waits on the h
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import numpy as np
 from flax import struct
 import jax
@@ -31,19 +33,38 @@ class StepTable:
 
 def load_steps(path: str, episodes: list[int] | None = None) -> StepTable:
     """All steps of a demos dataset (or of the given episodes) as host arrays."""
-    ds = demos.DemoDataset(path)
-    idx = range(len(ds)) if episodes is None else episodes
-    cols = {k: [] for k in ("image", "proprio", "action", "instruction")}
-    for i in idx:
-        ep = ds.episode(i)
-        n = len(ep["action"])
-        cols["image"].append(ep["image"])
-        cols["proprio"].append(ep["proprio"])
-        cols["action"].append(ep["action"])
-        cols["instruction"].append(np.repeat(language.to_ids(ds.episodes[i]["instruction"])[None], n, 0))
-    if not cols["action"]:
-        raise ValueError(f"{path}: no episodes to load")
-    return StepTable(*(np.concatenate(cols[k]) for k in ("image", "proprio", "instruction", "action")))
+    return load_step_table([(path, episodes)])
+
+
+def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]]) -> StepTable:
+    """The steps of several datasets' episodes ((path, episode indices or None for all), in
+    order) as one host table. Each column is allocated once and filled episode by episode
+    from the memory-mapped shards, so a table of N steps holds one copy of them in memory,
+    not the episodes', the datasets' and their concatenation's (a build's last DAgger round
+    trains on ~1.3M steps, ~31 GB of images)."""
+    plan = []  # (dataset, episode index)
+    for path, episodes in sources:
+        ds = demos.DemoDataset(path)
+        plan += [(ds, i) for i in (range(len(ds)) if episodes is None else episodes)]
+    if not plan:
+        raise ValueError(f"{[str(p) for p, _ in sources]}: no episodes to load")
+    shapes = {str(ds.path): ds.shard(ds.episodes[i]["shard"])["image"].shape[1:] for ds, i in plan}
+    if len(set(shapes.values())) != 1:
+        raise ValueError(f"the datasets hold images of different shapes: {shapes}")
+    n = sum(ds.episodes[i]["length"] for ds, i in plan)
+    first = plan[0][0].shard(plan[0][0].episodes[plan[0][1]]["shard"])
+    table = StepTable(**{f: np.empty((n, *first[f].shape[1:]), first[f].dtype) for f in ("image", "proprio", "action")},
+                      instruction=np.empty((n, language.MAX_INSTRUCTION_TOKENS), np.int32))
+    row = 0
+    for ds, i in plan:
+        e = ds.episodes[i]
+        shard, rows = ds.shard(e["shard"]), slice(e["start"], e["start"] + e["length"])
+        out = slice(row, row + e["length"])
+        for field in ("image", "proprio", "action"):
+            getattr(table, field)[out] = shard[field][rows]
+        table.instruction[out] = language.to_ids(e["instruction"])
+        row += e["length"]
+    return table
 
 
 def random_episode_split(path: str, holdout: float, seed: int = 0) -> tuple[list[int], list[int]]:

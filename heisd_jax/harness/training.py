@@ -6,15 +6,21 @@ bin off costs less than one 100 bins off (as in "HL-Gauss", Farebrother et al. 2
 mode stays the labelled bin, so greedy decoding is unchanged in expectation; 0 gives
 OpenVLA's plain cross-entropy.
 
-`make_train_step` returns a jitted pure step (state, table, key) -> (state, metrics) that
-draws its own minibatch from the device-resident step table. AdamW with linear warm-up and
-cosine decay (optax).
+`make_train_step` returns a pure step (state, table, key) -> (state, metrics) that draws
+its own minibatch from the device-resident step table. AdamW with linear warm-up and cosine
+decay (optax).
+
+The step runs as two compiled programs: the draw (gather and augmentation, whose program
+depends on the table's length) and the update (loss, gradient and AdamW on the drawn
+minibatch, whose program does not). A build's DAgger rounds train on a table that grows
+every round; with the update kept apart, each round after the first with the same settings
+finds the update's program in the persistent compilation cache, and compiles only the draw.
 
 Data parallelism (`mesh`, a one-axis `jax.sharding.Mesh`): the state and the step table are
-replicated on every device, the minibatch is split over the mesh after it is drawn (a
-sharding constraint: each device gathers and differentiates its own rows), and XLA's SPMD
-partitioner inserts the gradient all-reduce. The step computes the same function as on one
-device (the same rows, the same mean), up to the order of the gradient's summation.
+replicated on every device, the drawn minibatch is split over the mesh (each device gathers
+and differentiates its own rows), and XLA's SPMD partitioner inserts the gradient
+all-reduce. The step computes the same function as on one device (the same rows, the same
+mean), up to the order of the gradient's summation.
 """
 
 from __future__ import annotations
@@ -130,40 +136,59 @@ def _jit(cfg: TrainConfig):
     return functools.partial(jax.jit, compiler_options=xla_options.determinism(cfg.deterministic))
 
 
-def _data_parallel(step, mesh: Mesh | None, cfg: TrainConfig):
-    """`step` jitted (with `xla_options.DETERMINISTIC` where `cfg.deterministic`); with a mesh,
-    its inputs and outputs replicated over the mesh (the minibatch inside is split by `_split`)."""
-    if mesh is None:
-        return _jit(cfg)(step)
-    if cfg.batch_size % mesh.size:
+def _rows(mesh: Mesh) -> NamedSharding:
+    """Rows split over the mesh's one axis."""
+    return NamedSharding(mesh, P(mesh.axis_names[0]))
+
+
+def _check_split(mesh: Mesh | None, cfg: TrainConfig):
+    if mesh is not None and cfg.batch_size % mesh.size:
         raise ValueError(f"batch_size {cfg.batch_size} is not divisible by the {mesh.size} devices it is split over; "
                          f"use a multiple of {mesh.size}")
-    whole = NamedSharding(mesh, P())
-    return _jit(cfg)(step, in_shardings=whole, out_shardings=whole)
 
 
-def _split(mesh: Mesh | None, batch):
-    """The minibatch's rows split over the mesh's one axis (identity without a mesh)."""
+def _draw_program(draw, mesh: Mesh | None, cfg: TrainConfig):
+    """`draw` (-> a minibatch) jitted; with a mesh, its rows come out split over the mesh."""
+    return _jit(cfg)(draw) if mesh is None else _jit(cfg)(draw, out_shardings=_rows(mesh))
+
+
+def _update_program(update, mesh: Mesh | None, cfg: TrainConfig, n_replicated: int):
+    """`update`(state, *replicated, batch) jitted; with a mesh, the state, the other replicated
+    inputs and the outputs replicated over the mesh, the batch split over it."""
     if mesh is None:
-        return batch
-    return jax.lax.with_sharding_constraint(batch, NamedSharding(mesh, P(mesh.axis_names[0])))
+        return _jit(cfg)(update)
+    whole = NamedSharding(mesh, P())
+    return _jit(cfg)(update, in_shardings=(whole,) * (1 + n_replicated) + (_rows(mesh),), out_shardings=whole)
+
+
+def _apply(opt, state: TrainState, grads) -> TrainState:
+    updates, opt_state = opt.update(grads, state.opt_state, state.params)
+    return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates), opt_state=opt_state)
 
 
 def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionTokenizer, mesh: Mesh | None = None):
-    """Jitted (state, table, key) -> (state, metrics); over the devices of `mesh` if given
-    (data parallel; the state and table then live replicated on the mesh)."""
+    """(state, table, key) -> (state, metrics), over the devices of `mesh` if given (data
+    parallel; the state and table then live replicated on the mesh). Two programs: the draw
+    of a minibatch from the table, and the update, whose program is the same for any table."""
+    _check_split(mesh, cfg)
     opt = optimizer(cfg)
 
-    def train_step(state: TrainState, table: data.StepTable, key: jax.Array):
-        obs, tokens = _split(mesh, data.sample_batch(table, jax.random.fold_in(key, state.step), cfg.batch_size, tok,
-                                                     cfg.image_shift, model_cfg.n_views))
+    def draw(table: data.StepTable, step, key):
+        return data.sample_batch(table, jax.random.fold_in(key, step), cfg.batch_size, tok, cfg.image_shift,
+                                 model_cfg.n_views)
+
+    def update(state: TrainState, batch):
+        obs, tokens = batch
         (loss, metrics), grads = jax.value_and_grad(action_loss, has_aux=True)(
             state.params, model_cfg, obs, tokens, cfg.label_sigma_bins, cfg.seq_multiple)
-        updates, opt_state = opt.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        return TrainState(step=state.step + 1, params=params, opt_state=opt_state), {"loss": loss, **metrics}
+        return _apply(opt, state, grads), {"loss": loss, **metrics}
 
-    return _data_parallel(train_step, mesh, cfg)
+    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 0)
+
+    def train_step(state: TrainState, table: data.StepTable, key: jax.Array):
+        return update_fn(state, draw_fn(table, state.step, key))
+
+    return train_step
 
 
 def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, cfg: TrainConfig):
@@ -196,24 +221,31 @@ def init_drafter_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState
 
 
 def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | None = None):
-    """Jitted (state, tparams, table, tokens, key) -> (state, metrics): EAGLE's loss on a
-    random minibatch of steps teacher-forced on the target's greedy tokens; data parallel
-    over `mesh` as `make_train_step`."""
+    """(state, tparams, table, tokens, key) -> (state, metrics): EAGLE's loss on a random
+    minibatch of steps teacher-forced on the target's greedy tokens; two programs and data
+    parallel over `mesh` as `make_train_step`."""
+    _check_split(mesh, cfg)
     opt = optimizer(cfg)
 
-    def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
-        k_idx, k_shift = jax.random.split(jax.random.fold_in(key, state.step))
+    def draw(table: data.StepTable, tokens, step, key):
+        k_idx, k_shift = jax.random.split(jax.random.fold_in(key, step))
         i = jax.random.randint(k_idx, (cfg.batch_size,), 0, table.size)
         obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift, model_cfg.n_views),
                               instruction=table.instruction[i], proprio=table.proprio[i])
-        obs, labels = _split(mesh, (obs, tokens[i]))
+        return obs, tokens[i]
+
+    def update(state: TrainState, tparams, batch):
+        obs, labels = batch
         (loss, metrics), grads = jax.value_and_grad(drafter.loss, has_aux=True)(state.params, tparams, model_cfg, obs,
                                                                                 labels)
-        updates, opt_state = opt.update(grads, state.opt_state, state.params)
-        return TrainState(step=state.step + 1, params=optax.apply_updates(state.params, updates),
-                          opt_state=opt_state), {"loss": loss, **metrics}
+        return _apply(opt, state, grads), {"loss": loss, **metrics}
 
-    return _data_parallel(step, mesh, cfg)
+    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 1)
+
+    def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
+        return update_fn(state, tparams, draw_fn(table, tokens, state.step, key))
+
+    return step
 
 
 def make_drafter_eval(model_cfg: vla.VLAConfig, batch: int, cfg: TrainConfig):
