@@ -143,6 +143,32 @@ def test_a_longer_table_compiles_the_draw_again_not_the_update(dataset, caplog):
     assert compiled.count("jit(draw)") == 2 and compiled.count("jit(update)") == 1, compiled
 
 
+def test_a_round_with_other_settings_runs_the_same_update_program(dataset):
+    """The learning rate, its schedule and the label width are the update's inputs: a build's
+    first policy and its fine-tuning rounds share one compiled update."""
+    table = jax.device_put(data.load_steps(str(dataset)))
+    tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
+    first = training.TrainConfig(steps=60, batch_size=8, lr=5e-4, warmup_steps=30, label_sigma_bins=2.0)
+    later = training.TrainConfig(steps=45, batch_size=8, lr=2.5e-4, warmup_steps=20, label_sigma_bins=0.6)
+    state = training.init_state(CFG, first)
+    steps = [training.make_train_step(CFG, c, tok) for c in (first, later)]
+    batch = steps[0].draw(table, state.step, jax.random.PRNGKey(0))
+    hlo = [s.update.lower(state, s.settings, batch).as_text() for s in steps]
+    assert hlo[0] == hlo[1]
+    # ... and the settings do reach it: the second updates differ (the first has a learning rate of 0).
+    (a, _), (b, _) = (s.update(s.update(state, s.settings, batch)[0], s.settings, batch) for s in steps)
+    assert any(not np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a.params), jax.tree.leaves(b.params)))
+
+
+def test_the_schedule_is_optax_warmup_cosine_decay():
+    peak, warmup, steps = 5e-4, 300, 6000
+    want = optax.warmup_cosine_decay_schedule(0.0, peak, warmup, steps, end_value=peak * training.END_LR_FRACTION)
+    got = training.lr_schedule(jnp.float32(peak), jnp.float32(warmup), jnp.float32(steps))
+    counts = np.array([0, 1, 150, 299, 300, 301, 1000, 3150, 5999, 6000, 7000])
+    np.testing.assert_allclose([float(got(c)) for c in counts], [float(want(c)) for c in counts], rtol=2e-5,
+                               atol=1e-10)
+
+
 @pytest.fixture(scope="module")
 def policy_ckpt(tmp_path_factory):
     params = vla.init_params(CFG, jax.random.PRNGKey(1))

@@ -12,9 +12,11 @@ decay (optax).
 
 The step runs as two compiled programs: the draw (gather and augmentation, whose program
 depends on the table's length) and the update (loss, gradient and AdamW on the drawn
-minibatch, whose program does not). A build's DAgger rounds train on a table that grows
-every round; with the update kept apart, each round after the first with the same settings
-finds the update's program in the persistent compilation cache, and compiles only the draw.
+minibatch), whose program depends neither on the table nor on what a build changes from
+round to round: the learning rate, its warm-up and length, and the label width are inputs
+(`round_settings`). A build's DAgger rounds train on a table that grows every round, with
+other settings than its first policy; each round after the first finds the update's program
+in the persistent compilation cache, and compiles only the draw.
 
 Data parallelism (`mesh`, a one-axis `jax.sharding.Mesh`): the state and the step table are
 replicated on every device, the drawn minibatch is split over the mesh (each device gathers
@@ -76,8 +78,35 @@ class TrainState:
     opt_state: optax.OptState
 
 
-def optimizer(cfg: TrainConfig) -> optax.GradientTransformation:
-    schedule = optax.warmup_cosine_decay_schedule(0.0, cfg.lr, cfg.warmup_steps, cfg.steps, end_value=cfg.lr * 0.05)
+END_LR_FRACTION = 0.05  # the cosine decay ends at this fraction of the peak learning rate
+
+
+def round_settings(cfg: TrainConfig) -> dict:
+    """The settings a build changes from one training round to the next (learning rate, its
+    warm-up and length, label width), as float32 scalars: the update takes them as inputs
+    rather than constants, so every round of a build runs one compiled program."""
+    return {k: jnp.float32(getattr(cfg, k)) for k in ("lr", "warmup_steps", "steps", "label_sigma_bins")}
+
+
+def lr_schedule(peak, warmup_steps, steps):
+    """optax.warmup_cosine_decay_schedule(0, peak, warmup_steps, steps, peak * END_LR_FRACTION)
+    in jnp, so that its settings may be traced values: linear warm-up from 0, then a cosine
+    decay to END_LR_FRACTION of the peak at `steps`."""
+    def schedule(count):
+        count = jnp.asarray(count, jnp.float32)
+        warm = peak * count / jnp.maximum(warmup_steps, 1.0)
+        t = jnp.minimum(count - warmup_steps, steps - warmup_steps) / (steps - warmup_steps)
+        decay = peak * ((1 - END_LR_FRACTION) * 0.5 * (1 + jnp.cos(jnp.pi * t)) + END_LR_FRACTION)
+        return jnp.where(count < warmup_steps, warm, decay)
+
+    return schedule
+
+
+def optimizer(cfg: TrainConfig, settings: dict | None = None) -> optax.GradientTransformation:
+    """AdamW with gradient clipping and `lr_schedule`, at `settings` (`round_settings`, possibly
+    traced; `cfg`'s own by default). The optimizer's state does not depend on them."""
+    st = round_settings(cfg) if settings is None else settings
+    schedule = lr_schedule(st["lr"], st["warmup_steps"], st["steps"])
     return optax.chain(optax.clip_by_global_norm(cfg.grad_clip), optax.adamw(schedule, weight_decay=cfg.weight_decay))
 
 
@@ -94,14 +123,12 @@ def continue_from(state: TrainState, params) -> TrainState:
     return state.replace(params=jax.tree.map(lambda new, own: jnp.asarray(new, own.dtype), params, state.params))
 
 
-def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma: float) -> jnp.ndarray:
+def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma) -> jnp.ndarray:
     """[..., n_bins] target distributions: a Gaussian of std `sigma` bins around each bin
-    (one-hot when sigma is 0)."""
-    if sigma == 0:
-        return jax.nn.one_hot(bins, n_bins)
+    (one-hot where sigma is 0; sigma may be a traced value)."""
     d = jnp.arange(n_bins) - bins[..., None]
-    w = jnp.exp(-0.5 * (d / sigma) ** 2)
-    return w / w.sum(-1, keepdims=True)
+    w = jnp.exp(-0.5 * (d / jnp.where(sigma > 0, sigma, 1.0)) ** 2)
+    return jnp.where(sigma > 0, w / w.sum(-1, keepdims=True), jax.nn.one_hot(bins, n_bins))
 
 
 def action_loss(params, model_cfg: vla.VLAConfig, obs: vla.Observation, tokens: jnp.ndarray,
@@ -168,37 +195,41 @@ def _apply(opt, state: TrainState, grads) -> TrainState:
 
 def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionTokenizer, mesh: Mesh | None = None):
     """(state, table, key) -> (state, metrics), over the devices of `mesh` if given (data
-    parallel; the state and table then live replicated on the mesh). Two programs: the draw
-    of a minibatch from the table, and the update, whose program is the same for any table."""
+    parallel; the state and table then live replicated on the mesh). Two programs, kept as
+    the step's attributes: `draw`(table, step, key) -> minibatch, and `update`(state,
+    settings, minibatch) -> (state, metrics), whose program is the same for any table and
+    any `round_settings` (`settings`: this step's).""" 
     _check_split(mesh, cfg)
-    opt = optimizer(cfg)
+    settings = round_settings(cfg)
 
     def draw(table: data.StepTable, step, key):
         return data.sample_batch(table, jax.random.fold_in(key, step), cfg.batch_size, tok, cfg.image_shift,
                                  model_cfg.n_views)
 
-    def update(state: TrainState, batch):
+    def update(state: TrainState, settings: dict, batch):
         obs, tokens = batch
         (loss, metrics), grads = jax.value_and_grad(action_loss, has_aux=True)(
-            state.params, model_cfg, obs, tokens, cfg.label_sigma_bins, cfg.seq_multiple)
-        return _apply(opt, state, grads), {"loss": loss, **metrics}
+            state.params, model_cfg, obs, tokens, settings["label_sigma_bins"], cfg.seq_multiple)
+        return _apply(optimizer(cfg, settings), state, grads), {"loss": loss, **metrics}
 
-    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 0)
+    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 1)
 
     def train_step(state: TrainState, table: data.StepTable, key: jax.Array):
-        return update_fn(state, draw_fn(table, state.step, key))
+        return update_fn(state, settings, draw_fn(table, state.step, key))
 
+    train_step.draw, train_step.update, train_step.settings = draw_fn, update_fn, settings  # the two programs
     return train_step
 
 
 def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, cfg: TrainConfig):
     """Jitted (params, table, key) -> (loss, metrics) on a random `batch` of the table's steps,
     with `cfg`'s label smoothing."""
-    def evaluate(params, table: data.StepTable, key: jax.Array):
+    def evaluate(params, table: data.StepTable, key: jax.Array, sigma):
         obs, tokens = data.sample_batch(table, key, batch, tok)
-        return action_loss(params, model_cfg, obs, tokens, cfg.label_sigma_bins)
+        return action_loss(params, model_cfg, obs, tokens, sigma)
 
-    return _jit(cfg)(evaluate)
+    program, sigma = _jit(cfg)(evaluate), round_settings(cfg)["label_sigma_bins"]
+    return lambda params, table, key: program(params, table, key, sigma)
 
 
 # --- the drafter (EAGLE), trained against a frozen target ---------------------------------
@@ -225,7 +256,7 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
     minibatch of steps teacher-forced on the target's greedy tokens; two programs and data
     parallel over `mesh` as `make_train_step`."""
     _check_split(mesh, cfg)
-    opt = optimizer(cfg)
+    settings = round_settings(cfg)
 
     def draw(table: data.StepTable, tokens, step, key):
         k_idx, k_shift = jax.random.split(jax.random.fold_in(key, step))
@@ -234,16 +265,16 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
                               instruction=table.instruction[i], proprio=table.proprio[i])
         return obs, tokens[i]
 
-    def update(state: TrainState, tparams, batch):
+    def update(state: TrainState, settings: dict, tparams, batch):
         obs, labels = batch
         (loss, metrics), grads = jax.value_and_grad(drafter.loss, has_aux=True)(state.params, tparams, model_cfg, obs,
                                                                                 labels)
-        return _apply(opt, state, grads), {"loss": loss, **metrics}
+        return _apply(optimizer(cfg, settings), state, grads), {"loss": loss, **metrics}
 
-    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 1)
+    draw_fn, update_fn = _draw_program(draw, mesh, cfg), _update_program(update, mesh, cfg, 2)
 
     def step(state: TrainState, tparams, table: data.StepTable, tokens, key):
-        return update_fn(state, tparams, draw_fn(table, tokens, state.step, key))
+        return update_fn(state, settings, tparams, draw_fn(table, tokens, state.step, key))
 
     return step
 
