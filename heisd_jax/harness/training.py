@@ -198,7 +198,7 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
     parallel; the state and table then live replicated on the mesh). Two programs, kept as
     the step's attributes: `draw`(table, step, key) -> minibatch, and `update`(state,
     settings, minibatch) -> (state, metrics), whose program is the same for any table and
-    any `round_settings` (`settings`: this step's).""" 
+    any `round_settings` (`settings`: this step's)."""
     _check_split(mesh, cfg)
     settings = round_settings(cfg)
 
@@ -222,8 +222,8 @@ def make_train_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, tok: ActionToken
 
 
 def make_eval_fn(model_cfg: vla.VLAConfig, tok: ActionTokenizer, batch: int, cfg: TrainConfig):
-    """Jitted (params, table, key) -> (loss, metrics) on a random `batch` of the table's steps,
-    with `cfg`'s label smoothing."""
+    """(params, table, key) -> (loss, metrics) on a random `batch` of the table's steps, with
+    `cfg`'s label smoothing (an input of the compiled program, as in the update)."""
     def evaluate(params, table: data.StepTable, key: jax.Array, sigma):
         obs, tokens = data.sample_batch(table, key, batch, tok)
         return action_loss(params, model_cfg, obs, tokens, sigma)
