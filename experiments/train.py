@@ -102,18 +102,19 @@ def _tables():
     splits = [data.random_episode_split(path, FLAGS.holdout) for path in FLAGS.demos]
     for path, (train_eps, val_eps) in zip(FLAGS.demos, splits):
         print(f"{path}: {len(train_eps)} training episodes, {len(val_eps)} held out")
+    t0 = time.perf_counter()
     try:
         host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)])
     except ValueError as e:
         raise app.UsageError(f"--demos: {e}") from e
     first_train, first_val = splits[0]
     val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
+    print(f"loaded {host.size} training and {val_host.size} held-out steps in {time.perf_counter() - t0:.1f}s")
     h, w, _ = host.image.shape[1:]
     if w % h:
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
     n = sharding.local_mesh(FLAGS.devices).size
-    print(f"{host.size} training steps in all; {n} x {jax.devices()[0].device_kind}"
-          f"{', data parallel' if n > 1 else ''}")
+    print(f"{n} x {jax.devices()[0].device_kind}{', data parallel' if n > 1 else ''}")
     return host, val_host, h, w // h
 
 
