@@ -156,6 +156,14 @@ def test_compile_or_load_traces_once_per_key(tmp_path):
     assert not xs.compile_or_load(None, {"program": "cholesky"}, fresh(), (x,))[1] and len(traces) == 4
 
 
+def _run_entry_point(cmd: list[str], *more: str) -> str:
+    """An entry point run in its own process from the repository root; its stdout."""
+    out = subprocess.run([*cmd, *more], cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT)}, capture_output=True,
+                         text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-2000:]
+    return out.stdout
+
+
 @pytest.mark.slow
 def test_a_warm_collection_loads_its_program_and_writes_the_same_dataset(tmp_path):
     """collect_demos keys its program by what makes it (a DAgger round's policy parameters are
@@ -166,13 +174,7 @@ def test_a_warm_collection_loads_its_program_and_writes_the_same_dataset(tmp_pat
     cmd = [sys.executable, "-m", "experiments.collect_demos", "--suites=spatial", "--tasks=left_block_plate",
            "--episodes_per_task=2", "--num_envs=2", "--image_size=16", "--compilation_cache=",
            f"--executable_store={tmp_path / 'store'}"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    logs = []
-    for i in range(2):
-        out = subprocess.run([*cmd, f"--out={tmp_path / f'd{i}'}"], cwd=ROOT, env=env, capture_output=True, text=True,
-                             timeout=900)
-        assert out.returncode == 0, out.stderr[-2000:]
-        logs.append(out.stdout)
+    logs = [_run_entry_point(cmd, f"--out={tmp_path / f'd{i}'}") for i in range(2)]
     assert "(1 programs, 0 loaded from the executable store)" in logs[0], logs[0]
     assert "(1 programs, 1 loaded from the executable store)" in logs[1], logs[1]
     one, two = demos.DemoDataset(tmp_path / "d0"), demos.DemoDataset(tmp_path / "d1")
@@ -188,13 +190,8 @@ def test_a_warm_evaluation_loads_its_rollout_and_runs_the_same_episodes(tmp_path
     cmd = [sys.executable, "-m", "experiments.evaluate", "--method=expert", "--suites=spatial",
            "--tasks=left_block_plate", "--episodes=3", "--num_envs=2", "--compilation_cache=",
            f"--executable_store={tmp_path / 'store'}"]
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    runs = []
-    for i in range(2):
-        out = subprocess.run([*cmd, f"--out={tmp_path / f'{i}.json'}"], cwd=ROOT, env=env, capture_output=True,
-                             text=True, timeout=900)
-        assert out.returncode == 0, out.stderr[-2000:]
-        runs.append((out.stdout, json.loads((tmp_path / f"{i}.json").read_text())))
+    runs = [(_run_entry_point(cmd, f"--out={tmp_path / f'{i}.json'}"), json.loads((tmp_path / f"{i}.json").read_text()))
+            for i in range(2)]
     assert "loaded from the executable store" not in runs[0][0] and "loaded from the executable store" in runs[1][0]
     first, second = (r[1]["timing"]["compile_split"] for r in runs)
     programs = ("starts", "first", "physics", "turn")  # the queue's, the env's step split at its stages
