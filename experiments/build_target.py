@@ -40,7 +40,7 @@ FLAGS = flags.FLAGS
 flags.DEFINE_string("work", "runs/target", "Working directory (datasets, runs, logs, build.json).")
 flags.DEFINE_integer("demo_episodes", 40, "Expert episodes attempted per task.")
 flags.DEFINE_float("action_noise", 0.15, "Noise on the expert's executed actions in demonstrations (labels clean).")
-flags.DEFINE_integer("rounds", 4, "DAgger rounds after the first (behaviour-cloned) policy.")
+flags.DEFINE_integer("rounds", 6, "DAgger rounds after the first (behaviour-cloned) policy.")
 flags.DEFINE_float("expert_rot_gain", None, "The labelling expert's rotation gain in every collection "
                    "(collect_demos --expert_rot_gain; unset: the expert's own, envs.expert.ExpertConfig.rot_gain): "
                    "lower keeps its yaw labels proportional over more of a turn (docs/target.md).")

@@ -235,7 +235,7 @@ def test_build_target_label_smoothing_follows_its_schedule(tmp_path):
     r = subprocess.run([sys.executable, "-c", settings, "", "--label_sigma_bins=2", "--label_sigma_bins=2,0.6 --rounds=2"],
                        capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert r.stdout.split() == ["[2.0,", "2.0,", "0.6,", "0.6,", "0.6]", "null", "[2.0,", "0.6,", "0.6]"]  # the default: 2,2,0.6 (4 rounds)
+    assert r.stdout.split() == ["[2.0,", "2.0,", "0.6,", "0.6,", "0.6,", "0.6,", "0.6]", "null", "[2.0,", "0.6,", "0.6]"]  # the default: 2,2,0.6 (6 rounds)
     r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}",
                         "--label_sigma_bins=2,-1"], capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode != 0 and "--label_sigma_bins: each value must be >= 0, got 2,-1" in r.stderr, r.stderr[-3000:]
