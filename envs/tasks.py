@@ -263,3 +263,24 @@ def failure_weights(success_rate: dict[str, float], max_weight: int = 4) -> list
 def episode_weight(task: Task, weights: dict[str, int]) -> int:
     """How many times the per-task episode count `task` gets under `parse_suite_weights`' weights."""
     return weights.get(task.name, weights.get(task.suite, 1))
+
+
+def episode_counts(tasks: Sequence[Task], per_task: int, weights: dict[str, int], total: int | None = None
+                   ) -> dict[str, int]:
+    """Episodes to collect per task: `per_task` x its weight (`episode_weight`); with `total`,
+    those counts scaled to add up to `total` (largest remainders rounded up, every task at
+    least 1), so that weights move episodes between tasks instead of adding them. ValueError
+    when `total` is smaller than the number of tasks."""
+    counts = {t.name: per_task * episode_weight(t, weights) for t in tasks}
+    if total is None:
+        return counts
+    if total < len(counts):
+        raise ValueError(f"{total} episodes cannot give each of {len(counts)} tasks one")
+    spare = total - len(counts)  # one each first, the rest in proportion to the counts
+    scale = spare / sum(counts.values())
+    exact = {name: c * scale for name, c in counts.items()}
+    out = {name: 1 + int(x) for name, x in exact.items()}
+    by_remainder = sorted(exact, key=lambda name: (int(exact[name]) - exact[name], name))
+    for name in by_remainder[:total - sum(out.values())]:
+        out[name] += 1
+    return out

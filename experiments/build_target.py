@@ -51,10 +51,10 @@ flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,.
 flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
                     "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
                     "up to 4x); a task named in --suite_weights keeps the weight given there.")
-flags.DEFINE_bool("adapt_weights", False, "From the second DAgger round on, each round's collection gives every task "
-                  "episodes in proportion to how often the previous round's policy failed it there (collect_demos "
-                  "--weights_from: up to 4x, on top of --suite_weights), so the data follow where the policy fails. "
-                  "A weak policy fails everywhere, which makes every task 4x (four times the collection's time).")
+flags.DEFINE_bool("adapt_weights", False, "From the second DAgger round on, each round's collection shares its "
+                  "episodes out in proportion to how often the previous round's policy failed each task there "
+                  "(collect_demos --weights_from --keep_total: up to 4x, on top of --suite_weights), so the data follow "
+                  "where the policy fails; the round's total stays what --dagger_episodes and --suite_weights give.")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -185,7 +185,7 @@ def plan(w: Path) -> list[Stage]:
     data = [str(w / "demos")]
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
-        adapt = [f"--weights_from={w / f'dagger{r - 1}'}"] if FLAGS.adapt_weights and r > 1 else []
+        adapt = [f"--weights_from={w / f'dagger{r - 1}'}", "--keep_total"] if FLAGS.adapt_weights and r > 1 else []
         stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *labels, *adapt, *determinism,
                                            f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",

@@ -41,6 +41,9 @@ flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of thes
 flags.DEFINE_string("weights_from", "", "A DAgger dataset (this command with --policy) or an evaluation's results "
                     "JSON: each task gets episodes in proportion to how often that policy failed it "
                     "(envs.tasks.failure_weights, up to 4x); a task named in --suite_weights keeps the weight given there.")
+flags.DEFINE_bool("keep_total", False, "With --weights_from: collect as many episodes in all as --episodes_per_task "
+                  "and --suite_weights alone give, shared out in proportion to the weights with the failures' added "
+                  "(envs.tasks.episode_counts), so a policy that fails everywhere does not multiply the collection.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel, split over --devices (a multiple of their number).")
 flags.DEFINE_integer("devices", 0, "Local devices the env batch is split over, data parallel (0: all of them).")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
@@ -80,10 +83,17 @@ def main(argv):
         raise app.UsageError("--first_episode must be >= 0")
     if FLAGS.expert_rot_gain <= 0:
         raise app.UsageError(f"--expert_rot_gain must be > 0, got {FLAGS.expert_rot_gain}")
+    if FLAGS.keep_total and not FLAGS.weights_from:
+        raise app.UsageError("--keep_total needs --weights_from (without failure weights there is nothing to share out)")
     mesh = device_mesh(FLAGS.devices, FLAGS.num_envs)
     try:
         failures = cli.failure_weights(FLAGS.weights_from) if FLAGS.weights_from else []
         weights = tasks_lib.parse_suite_weights(failures + list(FLAGS.suite_weights))
+        total = None
+        if FLAGS.keep_total:
+            given = tasks_lib.parse_suite_weights(FLAGS.suite_weights)
+            total = sum(tasks_lib.episode_counts(task_list, FLAGS.episodes_per_task, given).values())
+        counts = tasks_lib.episode_counts(task_list, FLAGS.episodes_per_task, weights, total)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     dagger = bool(FLAGS.policy)
@@ -111,11 +121,11 @@ def main(argv):
         policy=FLAGS.policy or "expert", beta=FLAGS.beta if dagger else 1.0,
         expert=dataclasses.asdict(expert_cfg),
         episode_weights={t.name: tasks_lib.episode_weight(t, weights) for t in task_list},
+        episodes_per_task=counts,
         split="train",
     )
     writer = demos.DatasetWriter(FLAGS.out, meta, overwrite=FLAGS.overwrite)
-    pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list)
-             for e in range(FLAGS.episodes_per_task * tasks_lib.episode_weight(task, weights))]
+    pairs = [(t, FLAGS.first_episode + e) for t, task in enumerate(task_list) for e in range(counts[task.name])]
     batches = horizon_batches(pairs, [t.max_steps for t in task_list], FLAGS.num_envs, multiple=mesh.size)
     # One program for the whole collection: the policy's parameters, beta and each batch's time
     # limit are arguments, not constants baked in, so batches of every limit, and every DAgger
@@ -141,9 +151,9 @@ def main(argv):
                 "expert": expert_cfg,
                 "n_steps": n_steps, "exec_noise": FLAGS.action_noise}
 
-    def collect(batch, limit):
-        """One batch's final states and first `limit` steps of trajectories on the host; each
-        stage's seconds added up."""
+    def launch(batch, limit):
+        """Compiles (or loads) the batch size's program once and starts the batch on the
+        devices; returns without waiting, so the host can fetch the previous batch meanwhile."""
         t0 = time.perf_counter()
         size = batch[0].shape[0]
         if size not in programs:
@@ -151,47 +161,77 @@ def main(argv):
                 programs[size], hit = store_lib.compile_or_load(
                     store, identity, jax.jit(record_fn), (params, beta, *batch, jnp.int32(limit)), options)
             stored.append(hit)
-        t1 = time.perf_counter()
-        final, traj = jax.block_until_ready(programs[size](params, beta, *batch, jnp.int32(limit)))
-        t2 = time.perf_counter()
-        out = sharding.fetch((final, jax.tree.map(lambda x: x[:limit], traj)))  # the rows it ran
-        seconds["compile"] += t1 - t0
-        seconds["run"] += t2 - t1
-        seconds["fetch"] += time.perf_counter() - t2
-        return out
+        seconds["compile"] += time.perf_counter() - t0
+        return programs[size](params, beta, *batch, jnp.int32(limit))
+
+    def start_fetch(running, n):
+        """Waits for the batch, then queues the slicing of its first `n` envs (the batch's
+        own, not its padding) up to the last step any of them ran, and starts copying that to
+        the host: the rest of the buffers (padded env slots, steps after every episode ended)
+        stays on the devices. Returns the function that finishes the copy: (success, step
+        count, trajectories) on the host. Queued before the next batch, the slicing does not
+        wait for it, and the copy travels while it runs."""
+        final, traj = running
+        t0 = time.perf_counter()
+        success, step = sharding.fetch_slice((final.success, final.step), (slice(0, n),))
+        seconds["run"] += time.perf_counter() - t0  # waiting for the batch to finish
+        finish = sharding.start_fetch_slice(traj, (slice(0, int(step.max(initial=0))), slice(0, n)))
+
+        def done():
+            t1 = time.perf_counter()
+            out = success, step, finish()
+            seconds["fetch"] += time.perf_counter() - t1
+            return out
+        return done
 
     agree = [0, 0]  # DAgger: steps where the policy's action token equals the expert's, steps
     kept = 0
+
+    def write(chunk, success, step, traj):
+        """Slices the batch's episodes (a DAgger round keeps every one, the expert's only its
+        successes) and adds them to the dataset as one shard; returns how many it kept."""
+        t0 = time.perf_counter()
+        steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
+        for i, (t, e) in enumerate(chunk):
+            if not (success[i] or dagger):
+                continue
+            n = int(step[i])
+            if dagger:
+                same = np.abs(traj["policy_action"][:n, i] - traj["action"][:n, i]) <= 1.0 / 128
+                agree[0] += int(same.all(-1).sum())
+                agree[1] += n
+            for f in demos.STEP_FIELDS:
+                steps[f].append(traj[f][:n, i])
+            task = task_list[t]
+            records.append(dict(task=task.name, suite=task.suite, task_index=t, instruction=task.instruction,
+                                episode=int(e), start=row, length=n, success=bool(success[i])))
+            row += n
+        if records:
+            writer.add_shard({f: np.concatenate(v) for f, v in steps.items()}, records)
+        seconds["host"] += time.perf_counter() - t0
+        return len(records)
+
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
                       TextColumn("kept {task.fields[kept]}"), TimeRemainingColumn()) as bar:
             job = bar.add_task("collecting", total=len(pairs), kept=0)
-            for limit, size, chunk in batches:
-                pad = chunk + [chunk[-1]] * (size - len(chunk))
-                tids, eps = np.array(pad).T
-                keys = env.initial_state_keys(tids, eps, split="train")
-                final, traj = collect(sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32))), limit)
-                t0 = time.perf_counter()
-                steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
-                for i, (t, e) in enumerate(chunk):
-                    if not (final.success[i] or dagger):
-                        continue
-                    n = int(final.step[i])
-                    if dagger:
-                        same = np.abs(traj["policy_action"][:n, i] - traj["action"][:n, i]) <= 1.0 / 128
-                        agree[0] += int(same.all(-1).sum())
-                        agree[1] += n
-                    for f in demos.STEP_FIELDS:
-                        steps[f].append(traj[f][:n, i])
-                    task = task_list[t]
-                    records.append(dict(task=task.name, suite=task.suite, task_index=t, instruction=task.instruction,
-                                        episode=int(e), start=row, length=n, success=bool(final.success[i])))
-                    row += n
-                if records:
-                    writer.add_shard({f: np.concatenate(v) for f, v in steps.items()}, records)
-                kept += len(records)
-                seconds["host"] += time.perf_counter() - t0
-                bar.update(job, advance=len(chunk), kept=kept)
+            # Batch k+1 runs on the devices while batch k's trajectories travel to the host
+            # and are written: its slicing is queued first, then batch k+1, then the host
+            # waits for the copy.
+            fetching = None
+            for item in [*batches, None]:
+                running = None
+                if item is not None:
+                    limit, size, chunk = item
+                    pad = chunk + [chunk[-1]] * (size - len(chunk))
+                    tids, eps = np.array(pad).T
+                    keys = env.initial_state_keys(tids, eps, split="train")
+                    running = launch(sharding.shard_batch(mesh, (keys, jnp.asarray(tids, jnp.int32))), limit)
+                if fetching is not None:
+                    finish, done_chunk = fetching
+                    kept += write(done_chunk, *finish())
+                    bar.update(job, advance=len(done_chunk), kept=kept)
+                fetching = (start_fetch(running, len(chunk)), chunk) if running is not None else None
         t0 = time.perf_counter()
         path = writer.finalize()
         seconds["host"] += time.perf_counter() - t0

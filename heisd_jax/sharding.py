@@ -9,7 +9,7 @@ each process passes the same host arrays, and results are gathered back to every
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import jax
 import numpy as np
@@ -120,3 +120,65 @@ def fetch(tree: Any) -> Any:
     if jax.process_count() > 1:
         return multihost_utils.process_allgather(tree, tiled=True)
     return jax.device_get(tree)
+
+
+def fetch_slice(tree: Any, index: tuple[slice, ...]) -> Any:
+    """Host copies of `x[index]` for every array `x` of `tree` (`index`: slices with
+    non-negative bounds, one per leading axis), copying only those elements off the devices:
+    each device slices the part of its shard that falls inside `index` and sends that, and
+    the host assembles the pieces. A collection's trajectories are recorded into buffers of
+    the batch's longest time limit and padded env slots; what it keeps is a corner of them.
+    Across hosts: gathered whole, then sliced."""
+    return start_fetch_slice(tree, index)()
+
+
+def start_fetch_slice(tree: Any, index: tuple[slice, ...]) -> Callable[[], Any]:
+    """`fetch_slice` in two halves: this one queues the device-side slicing and starts the
+    copies to the host, and returns the function that waits for them and assembles the host
+    arrays. What the devices run next (queued after the slicing) then runs while the copies
+    travel."""
+    if jax.process_count() > 1:
+        return lambda: jax.tree.map(lambda x: np.asarray(x)[index], fetch(tree))
+    leaves, treedef = jax.tree.flatten(tree)
+    leaves = [jax.numpy.asarray(x) for x in leaves]
+    plans = [_slice_plan(x, index) for x in leaves]
+    for _, plan in plans:
+        for _, piece in plan:
+            piece.copy_to_host_async()
+
+    def assemble():
+        out = []
+        for x, (shape, plan) in zip(leaves, plans):
+            if len(plan) == 1 and plan[0][0] == tuple(slice(0, n) for n in shape):
+                out.append(np.asarray(plan[0][1]))  # one piece covers it: no second copy
+                continue
+            host = np.empty(shape, x.dtype)
+            for where, piece in plan:
+                host[where] = np.asarray(piece)
+            out.append(host)
+        return jax.tree.unflatten(treedef, out)
+
+    return assemble
+
+
+def _slice_plan(x: jax.Array, index: tuple[slice, ...]):
+    """(the shape of `x[index]`, [(where in it, the device-side slice that fills it)]): one
+    entry per distinct shard that overlaps `index`."""
+    if len(index) > x.ndim or any(s.step not in (None, 1) or (s.start or 0) < 0 or (s.stop is not None and s.stop < 0)
+                                  for s in index):
+        raise ValueError(f"fetch_slice: {index} is not contiguous non-negative slices of the leading axes of an "
+                         f"array of shape {x.shape}")
+    index = tuple(index) + (slice(None),) * (x.ndim - len(index))
+    want = [range(*s.indices(n)) for s, n in zip(index, x.shape)]
+    plan, seen = [], set()
+    for shard in x.addressable_shards:
+        have = [range(*s.indices(n)) for s, n in zip(shard.index, x.shape)]
+        lo = tuple(max(w.start, h.start) for w, h in zip(want, have))
+        hi = tuple(min(w.stop, h.stop) for w, h in zip(want, have))
+        if any(a >= b for a, b in zip(lo, hi)) or (lo, hi) in seen:
+            continue  # outside the slice, or a replica of a piece already planned
+        seen.add((lo, hi))
+        local = tuple(slice(a - h.start, b - h.start) for a, b, h in zip(lo, hi, have))
+        where = tuple(slice(a - w.start, b - w.start) for a, b, w in zip(lo, hi, want))
+        plan.append((where, shard.data[local]))
+    return tuple(len(r) for r in want), plan

@@ -28,6 +28,7 @@ CASES = [
     ("collect_demos", ["--suites=nope", "--out=/nonexistent/demos"], "unknown suite"),
     ("collect_demos", ["--suite_weights=spatial:2,longg:3", "--out=/nonexistent/demos"], "bad suite weight 'longg:3'"),
     ("collect_demos", ["--devices=9", "--out=/nonexistent/demos"], "--devices=9: 1 local devices here"),
+    ("collect_demos", ["--keep_total", "--out=/nonexistent/demos"], "--keep_total needs --weights_from"),
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
     ("ship_autotune", ["--methods=ar,nope"], "unknown ['nope']; choose from ['ar', 'drafter', 'expert'"),
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),

@@ -140,7 +140,7 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     assert "suite_weights" in by_module["collect_demos"] and "suite_weights" not in by_module["evaluate"]
     rounds = {s.split()[0]: cmd for s, cmd in stages}
     assert "--weights_from" not in rounds["dagger1"]  # no earlier round to weigh by
-    assert f"--weights_from={tmp_path / 'w' / 'dagger1'}" in rounds["dagger2"]  # the previous round's failures
+    assert f"--weights_from={tmp_path / 'w' / 'dagger1'} --keep_total" in rounds["dagger2"]  # the previous round's failures
     # every training and collection stage
     assert all("--deterministic=false" in rounds[s] for s in ("demos", "dagger1", "train1", "dagger2", "train2",
                                                               "target_rollouts", "drafter"))
@@ -160,6 +160,28 @@ def test_failure_weights_follow_the_failure_rate():
     for bad in ({"nope": 0.5}, {"pick_red_block": 1.5}):
         with pytest.raises(ValueError, match="bad task success rate"):
             tasks.failure_weights(bad)
+
+
+def test_episode_counts_share_out_a_kept_total_by_weight():
+    from envs import tasks
+
+    chosen = tasks.get_tasks("all", ["far_plate_block_basket", "left_block_plate", "pick_red_block", "red_block_plate"])
+    suites = tasks.parse_suite_weights(["spatial:2"])
+    assert tasks.episode_counts(chosen, 25, suites) == {"far_plate_block_basket": 50, "left_block_plate": 50,
+                                                        "pick_red_block": 25, "red_block_plate": 25}
+    failures = tasks.parse_suite_weights(["far_plate_block_basket:4", "pick_red_block:3", "spatial:2"])
+    grown = tasks.episode_counts(chosen, 25, failures)
+    assert grown == {"far_plate_block_basket": 100, "left_block_plate": 50, "pick_red_block": 75, "red_block_plate": 25}
+    for total in (150, 151, 4, 997):
+        kept = tasks.episode_counts(chosen, 25, failures, total)
+        assert sum(kept.values()) == total and min(kept.values()) >= 1
+        # shared out in the weights' order, each within one episode of its exact share
+        assert kept["far_plate_block_basket"] >= kept["pick_red_block"] >= kept["left_block_plate"] >= kept["red_block_plate"]
+        exact = {name: 1 + (total - 4) * n / sum(grown.values()) for name, n in grown.items()}
+        assert all(abs(kept[name] - exact[name]) < 1 for name in kept), (total, kept)
+    assert tasks.episode_counts(chosen, 25, suites, 150) == tasks.episode_counts(chosen, 25, suites)  # no change
+    with pytest.raises(ValueError, match="3 episodes cannot give each of 4 tasks one"):
+        tasks.episode_counts(chosen, 25, failures, 3)
 
 
 def test_build_target_weights_from_an_evaluation(tmp_path):
