@@ -56,8 +56,8 @@ def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, t
     for task in TASKS.split(","):
         (ep,) = res["episodes"][task]
         assert isinstance(ep["success"], bool) and ep["steps"] > 0
-        # AR: one prefill + 6 cached passes for every action taken, 7 tokens each.
-        assert ep["decode"] == {"target_passes": 7.0 * ep["steps"], "tokens": 7.0 * ep["steps"]}
+        # AR: one prefill + 6 cached passes for every action taken, 7 tokens each; no invalid rows.
+        assert ep["decode"] == {"target_passes": 7.0 * ep["steps"], "tokens": 7.0 * ep["steps"], "invalid": 0.0}
     for suite in ("spatial", "object"):
         s = res["summary"]["suites"][suite]
         assert s["episodes"] == 1 and 0.0 <= s["success_rate"] <= 1.0

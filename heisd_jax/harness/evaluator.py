@@ -11,7 +11,7 @@ import concurrent.futures
 import dataclasses
 import functools
 import time
-from typing import Any, Callable, Collection, NamedTuple, Sequence
+from typing import Any, Callable, Collection, Sequence
 
 import jax
 import numpy as np
@@ -78,19 +78,6 @@ def pending_episodes(env: TabletopEnv, cfg: EvalConfig, done: dict[str, list],
 # XLA compiles a program on one thread (its backend's kernels aside): a rollout's programs
 # compile side by side here, and a tail's beside the head's run.
 _COMPILER = concurrent.futures.ThreadPoolExecutor(8, thread_name_prefix="heisd-compile")
-
-
-class _Staged(NamedTuple):
-    """A program before XLA: loaded from the store (`compiled`) or traced and lowered (`lowered`)."""
-    part: str
-    key: str | None  # its store key; None: no store
-    compiled: Any
-    lowered: Any
-    split: dict[str, float]  # seconds by stage so far
-
-    @property
-    def out_info(self):
-        return (self.lowered if self.compiled is None else self.compiled).out_info
 
 
 def _shapes(tree) -> list[jax.ShapeDtypeStruct]:
@@ -237,7 +224,7 @@ class BatchRollout:
 
         def lowered(part, fn, args, start=False, **key):
             st = self._lower(fn, args, prefix + part, **key)
-            staged[prefix + part] = _COMPILER.submit(self._finish, st) if start else st
+            staged[prefix + part] = _COMPILER.submit(self._finish, st, prefix + part) if start else st
             return sharding.slot_specs(self.mesh, st.out_info, slots)
 
         c, x, go = lowered("first", loop.first, (params, self._starts_info, n_valid, *carry), key_inputs=inputs)
@@ -252,7 +239,7 @@ class BatchRollout:
         compiles beside the tracing slow it (on a GPU host XLA's code generation takes every
         core), and the largest compile outlasts it anyway. Returns ({"loop": `loop` compiled,
         each other part: its program}, seconds by `{part}_{stage}`)."""
-        futures = {part: st if isinstance(st, concurrent.futures.Future) else _COMPILER.submit(self._finish, st)
+        futures = {part: st if isinstance(st, concurrent.futures.Future) else _COMPILER.submit(self._finish, st, part)
                    for part, st in staged.items()}
         done, split = {}, {}
         for part, future in futures.items():
@@ -269,43 +256,20 @@ class BatchRollout:
     def _compile(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None):
         """(compiled `fn` for `inputs`, its seconds by stage); loaded from or saved to the store
         under this rollout's identity, `part` and `key_inputs` (default: `inputs`)."""
-        return self._finish(self._lower(fn, inputs, part, key_inputs))
+        return self._finish(self._lower(fn, inputs, part, key_inputs), part)
 
     def _lower(self, fn, inputs: tuple, part: str, key_inputs: tuple | None = None,
-               identity: dict | None = None) -> _Staged:
+               identity: dict | None = None) -> executable_store.Staged:
         """`fn`'s program for `inputs` loaded from the store, or traced and lowered; stored
-        under `identity` (default this rollout's) and `key_inputs` (default `inputs`)."""
-        t0 = time.perf_counter()
-        identity = {**(identity or self._identity), "part": part}
-        key = self.store.key(identity, key_inputs or inputs) if self.store else None
-        compiled = self.store.load(key) if key else None
-        if compiled is not None:  # no tracing, lowering or XLA
-            return _Staged(part, key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0,
-                                                       "store": time.perf_counter() - t0})
-        t1 = time.perf_counter()
+        under `identity` (default this rollout's), `part` and `key_inputs` (default `inputs`)."""
         with jax.set_mesh(self.mesh):  # the env's kernels split their batch as the envs are split
-            traced = fn.trace(*inputs)
-            t2 = time.perf_counter()
-            lowered = traced.lower()
-        split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
-        if self.store:
-            split["store"] = t1 - t0
-        return _Staged(part, key, None, lowered, split)
+            return executable_store.stage(self.store, {**(identity or self._identity), "part": part}, fn, inputs,
+                                          key_inputs)
 
-    def _finish(self, staged: _Staged):
+    def _finish(self, staged: executable_store.Staged, part: str):
         """(`staged`'s program compiled by XLA, or as loaded, and saved to the store; its seconds by stage)."""
-        part, key, compiled, lowered, split = staged
-        if compiled is not None:
-            return compiled, split
-        t0 = time.perf_counter()
-        compiled = executable_store.compile_storable(lowered, self._options) if key else lowered.compile(self._options)
-        sharding.sync(f"heisd_jax.harness.evaluator: rollout {part} compiled")  # several hosts: the slowest counts
-        t1 = time.perf_counter()
-        split = {**split, "xla": t1 - t0}
-        if key:
-            self.store.save(key, compiled)
-            split["store"] += time.perf_counter() - t1
-        return compiled, split
+        return executable_store.finish(self.store, staged, self._options, on_compiled=lambda: sharding.sync(
+            f"heisd_jax.harness.evaluator: rollout {part} compiled"))  # several hosts: the slowest counts
 
     def _compile_tail(self, inputs: tuple):
         """The tail's programs, traced in turn in this (background) thread, then compiled side by side."""

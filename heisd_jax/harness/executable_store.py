@@ -42,7 +42,8 @@ from pathlib import Path
 import pickle
 import tempfile
 import threading
-from typing import Any
+import time
+from typing import Any, Callable, NamedTuple
 
 import jax
 import numpy as np
@@ -105,23 +106,67 @@ def compile_storable(lowered, compiler_options: dict | None = None):
         return lowered.compile(compiler_options)
 
 
+class Staged(NamedTuple):
+    """A program before XLA: loaded from a store (`compiled`) or traced and lowered
+    (`lowered`), with the seconds each stage took so far (`split`: trace, lower, store)."""
+    key: str | None  # its store key; None: not stored
+    compiled: Any
+    lowered: Any
+    split: dict[str, float]
+
+    @property
+    def out_info(self):
+        return (self.lowered if self.compiled is None else self.compiled).out_info
+
+
+def stage(store: "ExecutableStore | None", identity: Any, jitted, inputs: tuple,
+          key_inputs: tuple | None = None) -> Staged:
+    """`jitted`'s program for `inputs`, loaded from `store` under `identity` and `key_inputs`'
+    signature (default `inputs`) without tracing, else traced and lowered (in the caller's
+    mesh context) for `finish`. With no store (or where stores are not `supported`) it is
+    only traced and lowered."""
+    t0 = time.perf_counter()
+    key = store.key(identity, key_inputs or inputs) if store is not None and supported() else None
+    compiled = store.load(key) if key else None
+    if compiled is not None:  # no tracing, lowering or XLA
+        return Staged(key, compiled, None, {"trace": 0.0, "lower": 0.0, "xla": 0.0, "store": time.perf_counter() - t0})
+    t1 = time.perf_counter()
+    traced = jitted.trace(*inputs)
+    t2 = time.perf_counter()
+    lowered = traced.lower()
+    split = {"trace": t2 - t1, "lower": time.perf_counter() - t2}
+    if key:
+        split["store"] = t1 - t0
+    return Staged(key, None, lowered, split)
+
+
+def finish(store: "ExecutableStore | None", staged: Staged, compiler_options: dict | None = None,
+           on_compiled: Callable[[], None] | None = None):
+    """(`staged`'s program compiled by XLA and saved to `store` under its key, or as loaded;
+    its seconds by stage, `xla` added). `on_compiled` runs between the compile and the save
+    (the evaluator waits there for the other hosts, so that the slowest host's compile counts)."""
+    if staged.compiled is not None:
+        return staged.compiled, staged.split
+    t0 = time.perf_counter()
+    compiled = compile_storable(staged.lowered, compiler_options) if staged.key else \
+        staged.lowered.compile(compiler_options)
+    if on_compiled is not None:
+        on_compiled()
+    t1 = time.perf_counter()
+    split = {**staged.split, "xla": t1 - t0}
+    if staged.key:
+        store.save(staged.key, compiled)
+        split["store"] += time.perf_counter() - t1
+    return compiled, split
+
+
 def compile_or_load(store: "ExecutableStore | None", identity: Any, jitted, inputs: tuple,
                     compiler_options: dict | None = None):
-    """(`jitted` compiled for `inputs`, whether it came from `store`): loaded under `identity`
-    and the inputs' signature without tracing, else traced, lowered, compiled and saved there.
-    With no store (or where stores are not `supported`) it is compiled as usual. For a program
-    outside `BatchRollout` that several processes compile alike, such as each DAgger round's
-    collection."""
-    key = store.key(identity, inputs) if store is not None and supported() else None
-    loaded = store.load(key) if key else None
-    if loaded is not None:
-        return loaded, True
-    lowered = jitted.trace(*inputs).lower()
-    if key is None:
-        return lowered.compile(compiler_options), False
-    compiled = compile_storable(lowered, compiler_options)
-    store.save(key, compiled)
-    return compiled, False
+    """(`jitted` compiled for `inputs`, whether it came from `store`): `stage` then `finish`.
+    For a program outside `BatchRollout` that several processes compile alike, such as each
+    DAgger round's collection."""
+    staged = stage(store, identity, jitted, inputs)
+    return finish(store, staged, compiler_options)[0], staged.compiled is not None
 
 
 def describe(obj: Any) -> Any:
