@@ -284,3 +284,20 @@ def episode_counts(tasks: Sequence[Task], per_task: int, weights: dict[str, int]
     for name in by_remainder[:total - sum(out.values())]:
         out[name] += 1
     return out
+
+
+
+def shared_episode_counts(tasks: Sequence[Task], per_task: int, given: dict[str, int], weights: dict[str, int]
+                          ) -> dict[str, int]:
+    """Episodes per task when `weights` (the failures' added to `given`) share out what `given`
+    alone would collect, time limit by time limit: the tasks of one `max_steps` keep their
+    combined count, and the weights move episodes between them (`episode_counts` with that
+    count as the total). A collection batches episodes by time limit (a batch runs to its
+    longest task's limit), so each limit keeping its count keeps every batch's shape, and
+    every round of a build runs the one compiled program whatever its failures."""
+    out = {}
+    for limit in sorted({t.max_steps for t in tasks}):
+        group = [t for t in tasks if t.max_steps == limit]
+        total = sum(episode_counts(group, per_task, given).values())
+        out.update(episode_counts(group, per_task, weights, total))
+    return {t.name: out[t.name] for t in tasks}

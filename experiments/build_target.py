@@ -54,7 +54,8 @@ flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experimen
 flags.DEFINE_bool("adapt_weights", False, "From the second DAgger round on, each round's collection shares its "
                   "episodes out in proportion to how often the previous round's policy failed each task there "
                   "(collect_demos --weights_from --keep_total: up to 4x, on top of --suite_weights), so the data follow "
-                  "where the policy fails; the round's total stays what --dagger_episodes and --suite_weights give.")
+                  "where the policy fails; each time limit's total stays what --dagger_episodes and --suite_weights give "
+                  "(every round then runs one compiled program).")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")

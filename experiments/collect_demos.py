@@ -41,9 +41,11 @@ flags.DEFINE_list("suite_weights", [], "SUITE:N or TASK:N,...: the tasks of thes
 flags.DEFINE_string("weights_from", "", "A DAgger dataset (this command with --policy) or an evaluation's results "
                     "JSON: each task gets episodes in proportion to how often that policy failed it "
                     "(envs.tasks.failure_weights, up to 4x); a task named in --suite_weights keeps the weight given there.")
-flags.DEFINE_bool("keep_total", False, "With --weights_from: collect as many episodes in all as --episodes_per_task "
-                  "and --suite_weights alone give, shared out in proportion to the weights with the failures' added "
-                  "(envs.tasks.episode_counts), so a policy that fails everywhere does not multiply the collection.")
+flags.DEFINE_bool("keep_total", False, "With --weights_from: collect as many episodes per time limit as "
+                  "--episodes_per_task and --suite_weights alone give, shared out among that limit's tasks in "
+                  "proportion to the weights with the failures' added (envs.tasks.shared_episode_counts): a policy "
+                  "that fails everywhere does not multiply the collection, and the batches keep their shapes, so "
+                  "every round runs one compiled program.")
 flags.DEFINE_integer("num_envs", 64, "Episodes run in parallel, split over --devices (a multiple of their number).")
 flags.DEFINE_integer("devices", 0, "Local devices the env batch is split over, data parallel (0: all of them).")
 flags.DEFINE_integer("image_size", 64, "Camera resolution of each view (square).")
@@ -89,11 +91,11 @@ def main(argv):
     try:
         failures = cli.failure_weights(FLAGS.weights_from) if FLAGS.weights_from else []
         weights = tasks_lib.parse_suite_weights(failures + list(FLAGS.suite_weights))
-        total = None
         if FLAGS.keep_total:
             given = tasks_lib.parse_suite_weights(FLAGS.suite_weights)
-            total = sum(tasks_lib.episode_counts(task_list, FLAGS.episodes_per_task, given).values())
-        counts = tasks_lib.episode_counts(task_list, FLAGS.episodes_per_task, weights, total)
+            counts = tasks_lib.shared_episode_counts(task_list, FLAGS.episodes_per_task, given, weights)
+        else:
+            counts = tasks_lib.episode_counts(task_list, FLAGS.episodes_per_task, weights)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     dagger = bool(FLAGS.policy)

@@ -184,6 +184,26 @@ def test_episode_counts_share_out_a_kept_total_by_weight():
         tasks.episode_counts(chosen, 25, failures, 3)
 
 
+def test_shared_episode_counts_keep_each_time_limits_total():
+    """Failure weights move episodes only between tasks of one time limit, so a round's
+    batches (one per limit) keep their shapes whatever the policy failed."""
+    from envs import tasks
+
+    chosen = tasks.get_tasks("all", ["far_plate_block_basket", "pick_red_block", "red_green_blocks_basket",
+                                     "both_cylinders_basket"])
+    assert len({t.max_steps for t in chosen}) == 2  # two short tasks, two long ones
+    given = tasks.parse_suite_weights(["spatial:2", "long:2"])
+    failures = tasks.parse_suite_weights(["far_plate_block_basket:4", "both_cylinders_basket:3", "spatial:2", "long:2"])
+    before, after = tasks.episode_counts(chosen, 25, given), tasks.shared_episode_counts(chosen, 25, given, failures)
+    assert list(after) == [t.name for t in chosen]
+    for limit in {t.max_steps for t in chosen}:
+        names = [t.name for t in chosen if t.max_steps == limit]
+        assert sum(after[n] for n in names) == sum(before[n] for n in names)
+    assert after["far_plate_block_basket"] > before["far_plate_block_basket"]
+    assert after["both_cylinders_basket"] > after["red_green_blocks_basket"]
+    assert tasks.shared_episode_counts(chosen, 25, given, given) == before  # no failures: no change
+
+
 def test_build_target_weights_from_an_evaluation(tmp_path):
     """--weights_from turns an evaluation's per-task failures into the collections' weights;
     an explicit --suite_weights entry for a task keeps its own weight; a file that is no
