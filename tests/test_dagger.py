@@ -203,6 +203,15 @@ def test_shared_episode_counts_keep_each_time_limits_total():
     assert after["both_cylinders_basket"] > after["red_green_blocks_basket"]
     assert tasks.shared_episode_counts(chosen, 25, given, given) == before  # no failures: no change
 
+    from experiments.collect_demos import horizon_batches
+
+    def shapes(counts):  # each batch's time limit and size: what the compiled program depends on
+        pairs = [(t, e) for t, task in enumerate(chosen) for e in range(counts[task.name])]
+        return [(limit, size) for limit, size, _ in horizon_batches(pairs, [t.max_steps for t in chosen], 100, 2)]
+
+    assert shapes(after) == shapes(before)
+    assert shapes(tasks.episode_counts(chosen, 25, failures, sum(before.values()))) != shapes(before)  # one total
+
 
 def test_build_target_weights_from_an_evaluation(tmp_path):
     """--weights_from turns an evaluation's per-task failures into the collections' weights;
