@@ -341,12 +341,15 @@ def define_store_flag() -> None:
 def executable_store(method: str, settings: dict):
     """The store of --executable_store for `method`'s programs at `settings` (its flags), named
     also by digests of the files it loads (--checkpoint, --drafter, --datastore: a retrained
-    checkpoint at the same path is another program); None when the flag is empty."""
+    checkpoint at the same path is another program), except those whose contents reach the
+    programs only as inputs and keyed meta (`Method.shares_programs`); None when the flag is
+    empty."""
     from heisd_jax.harness import executable_store as store_lib, methods  # noqa: PLC0415
 
     if not flags.FLAGS.executable_store:
         return None
-    files = {name: store_lib.file_digest(getattr(flags.FLAGS, name)) for name in methods.get(method).loads}
+    m = methods.get(method)
+    files = {name: store_lib.file_digest(getattr(flags.FLAGS, name)) for name in m.loads if name not in m.shares_programs}
     return store_lib.ExecutableStore(flags.FLAGS.executable_store,
                                      {"method": method, "settings": settings, "files": files})
 

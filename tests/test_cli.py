@@ -43,6 +43,7 @@ CASES = [
     ("studies.op_invariance", ["--numerics=float16"], "valid are bfloat16, f32_act_bf16_products, float32"),
     ("studies.invariant_tiles", ["--tiles=64x48x32"], "n=48: must be a power of two >= 16"),
     ("studies.trace_decode", ["--functions=prefill,prefil"], "--functions ['prefil']: valid are ['ar', 'prefill'"),
+    ("studies.expert_gain", ["--gains=1.2,0"], "--gains must be > 0"),
 ]
 
 

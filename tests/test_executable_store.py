@@ -252,3 +252,40 @@ def test_bypassing_the_cache_nests_across_threads():
     assert not jax.config.jax_enable_compilation_cache
     b.__exit__(None, None, None)
     assert jax.config.jax_enable_compilation_cache == before
+
+
+def test_checkpoints_that_differ_only_in_weights_lower_to_one_program(tmp_path):
+    """Why `ar` leaves its checkpoint's digest out of the store's key (`Method.shares_programs`):
+    two checkpoints of one architecture and tokenizer, other weights, lower to the same rollout
+    program (its constants included), with equal meta; a checkpoint with other tokenizer bins
+    (constants in the program) lowers to another, and its meta, which the key holds, differs."""
+    import tiny_models  # noqa: PLC0415
+    from envs import language, rollout, tasks  # noqa: PLC0415
+    from envs.env import TabletopEnv  # noqa: PLC0415
+    from heisd_jax import checkpoint, vla  # noqa: PLC0415
+    from heisd_jax.harness import methods  # noqa: PLC0415
+    from heisd_jax.tokenizer import ActionTokenizer  # noqa: PLC0415
+
+    cfg = tiny_models.CFG
+    made = {"a": (0, 1.0), "b": (1, 1.0), "other_bins": (0, 0.5)}
+    for name, (seed, bound) in made.items():
+        tok = ActionTokenizer(q01=(-bound,) * 7, q99=(bound,) * 7, vocab_size=cfg.vocab_size)
+        checkpoint.save_policy(tmp_path / name, vla.init_params(cfg, jax.random.PRNGKey(seed)), cfg, tok,
+                               text_vocab=tuple(language.VOCAB))
+    env = TabletopEnv(tasks.get_tasks("spatial", ["left_block_plate"]), methods.env_config("ar", tmp_path / "a"))
+    tids = np.zeros(2, np.int32)
+    keys = env.initial_state_keys(tids, np.arange(2))
+
+    def lowered(name):
+        policy = methods.make_policy("ar", env, checkpoint=tmp_path / name)
+
+        def run(params, k, t):
+            return rollout.run_episodes(env, dataclasses.replace(policy, params=params), k, t, 3, 0)
+
+        return jax.jit(run).lower(policy.params, keys, jnp.asarray(tids)).as_text(), xs.describe(policy.meta)
+
+    lowered("a")  # the first trace fills JAX's tracing caches, which rename shared functions in later ones
+    (a, meta_a), (b, meta_b), (other, meta_other) = (lowered(n) for n in made)
+    assert a == b and meta_a == meta_b
+    assert a != other and meta_a != meta_other
+    assert methods.get("ar").shares_programs == ("checkpoint",)

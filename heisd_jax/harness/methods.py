@@ -493,13 +493,17 @@ class Method:
     renders: bool  # looks at the camera image (the expert does not: render off, faster)
     budget: bool  # may choose its draft budget from measured costs (takes batch_size, cost tables)
     build: Callable[..., Policy]  # (env, paths, given settings, **budget options) -> Policy
+    # Of `loads`, the files that reach the compiled programs only as the policy's parameters
+    # (an input) and its meta (part of a program's key): the executable store leaves their
+    # digests out of its key, so checkpoints of one architecture and tokenizer share programs.
+    shares_programs: tuple[str, ...] = ()
 
 
 DEFAULT_PATHS = {"checkpoint": vla_policy.DEFAULT_CHECKPOINT, "drafter": vla_policy.DEFAULT_DRAFTER,
                  "datastore": vla_policy.DEFAULT_DATASTORE}
 METHODS: dict[str, Method] = {m.name: m for m in (
     Method("expert", expert.ExpertConfig(), (), renders=False, budget=False, build=_build_expert),
-    Method("ar", Config(), ("checkpoint",), renders=True, budget=False, build=_build_ar),
+    Method("ar", Config(), ("checkpoint",), renders=True, budget=False, build=_build_ar, shares_programs=("checkpoint",)),
     Method("drafter", Config(decode=spec_decode.SpecConfig()), ("checkpoint", "drafter"), renders=True, budget=False,
            build=_build_drafter),
     # Retrieval drafts verified every step, drafter SD for the rest of each action: the paper's
