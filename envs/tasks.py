@@ -286,7 +286,6 @@ def episode_counts(tasks: Sequence[Task], per_task: int, weights: dict[str, int]
     return out
 
 
-
 def shared_episode_counts(tasks: Sequence[Task], per_task: int, given: dict[str, int], weights: dict[str, int]
                           ) -> dict[str, int]:
     """Episodes per task when `weights` (the failures' added to `given`) share out what `given`
