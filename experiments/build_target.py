@@ -51,11 +51,13 @@ flags.DEFINE_list("suite_weights", ["spatial:2", "long:2"], "SUITE:N or TASK:N,.
 flags.DEFINE_string("weights_from", "", "An evaluation's results JSON (experiments.evaluate --out): each task it "
                     "holds gets episodes in proportion to how often that policy failed it (envs.tasks.failure_weights, "
                     "up to 4x); a task named in --suite_weights keeps the weight given there.")
-flags.DEFINE_bool("adapt_weights", False, "From the second DAgger round on, each round's collection shares its "
-                  "episodes out in proportion to how often the previous round's policy failed each task there "
-                  "(collect_demos --weights_from --keep_total: up to 4x, on top of --suite_weights), so the data follow "
-                  "where the policy fails; each time limit's total stays what --dagger_episodes and --suite_weights give "
-                  "(every round then runs one compiled program).")
+flags.DEFINE_bool("adapt_weights", False, "Follow where the policy fails: from the second DAgger round on, each "
+                  "round's collection shares its episodes out in proportion to how often the previous round's policy "
+                  "failed each task there (collect_demos --weights_from --keep_total: up to 4x, on top of "
+                  "--suite_weights; each time limit's total stays what --dagger_episodes and --suite_weights give, so "
+                  "every round runs one compiled program), and each round whose policy drove alone (beta 0) "
+                  "fine-tunes on the aggregate drawn by that round's failures (train --weights_from: the policy it "
+                  "fine-tunes is the one that failed them).")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -187,6 +189,7 @@ def plan(w: Path) -> list[Stage]:
     for r in range(1, FLAGS.rounds + 1):
         data.append(str(w / f"dagger{r}"))
         adapt = [f"--weights_from={w / f'dagger{r - 1}'}", "--keep_total"] if FLAGS.adapt_weights and r > 1 else []
+        drawn = [f"--weights_from={w / f'dagger{r}'}"] if FLAGS.adapt_weights and _beta(r) == 0 else []
         stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *labels, *adapt, *determinism,
                                            f"--policy={_policy(w, r - 1)}",
                                            f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
@@ -196,7 +199,7 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
                                           f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
                                           f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
-                                          f"--label_sigma_bins={_sigma(r):g}",
+                                          f"--label_sigma_bins={_sigma(r):g}", *drawn,
                                           f"--export={_policy(w, r)}"], _policy(w, r), acc))
     final = _policy(w, FLAGS.rounds)
     from envs import tasks as tasks_lib  # noqa: PLC0415

@@ -9,6 +9,10 @@ training episodes are pooled; the validation steps are the held-out episodes of 
 The model's image size and number of camera views are read from the data. --init starts
 from a policy checkpoint's parameters and tokenizer (fresh optimizer and schedule).
 
+--weights_from=DAGGER_DATASET (or an evaluation's results JSON) draws each step in proportion
+to how often that policy failed its task (`envs.tasks.failure_weights`, up to 4x; others 1):
+a round's fine-tuning then weighs what its policy gets wrong, not the aggregate's task mix.
+
 --devices=N trains data parallel over N local devices (0: all): the state and the step
 table are replicated on each, every minibatch is split over them (`heisd_jax.harness.training`).
 
@@ -29,7 +33,7 @@ import numpy as np
 from absl import app, flags, logging
 
 import envs  # noqa: F401  (XLA CPU flags before JAX starts)
-from envs import demos, language
+from envs import demos, language, tasks as tasks_lib
 from heisd_jax import checkpoint, sharding, vla
 from heisd_jax.harness import data, training, vla_policy
 from heisd_jax.tokenizer import ActionTokenizer
@@ -42,6 +46,9 @@ flags.DEFINE_string("target", str(vla_policy.DEFAULT_CHECKPOINT), "--model=draft
 cli.existing_dir("target", "policy checkpoint")
 flags.DEFINE_list("demos", ["data/demos"], "Demonstration datasets (experiments.collect_demos), comma-separated; "
                   "validation uses the held-out episodes of the first.")
+flags.DEFINE_string("weights_from", "", "A DAgger dataset (collect_demos --policy) or an evaluation's results JSON: "
+                    "each training step is drawn in proportion to how often that policy failed its task "
+                    "(envs.tasks.failure_weights: 1 + 10 x failure rate, up to 4x; other tasks 1). Empty: uniform.")
 flags.DEFINE_string("init", "", "--model=vla: start from this policy checkpoint's parameters and tokenizer.")
 cli.existing_dir("init", "policy checkpoint")
 flags.DEFINE_enum("compute_dtype", "bfloat16", ["float32", "bfloat16"], "Activation dtype while training (parameters "
@@ -95,21 +102,25 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
     return state
 
 
-def _tables():
+def _tables(task_weights: dict[str, int]):
     """(train, validation) step tables on the host, and the (image size, views) of the data:
-    the training episodes of every --demos dataset in one table, the first dataset's held-out
-    episodes (its training episodes where it holds none out) for validation."""
+    the training episodes of every --demos dataset in one table, drawn by `task_weights`
+    (`data.load_step_table`), the first dataset's held-out episodes (its training episodes
+    where it holds none out) for validation, drawn uniformly."""
     splits = [data.random_episode_split(path, FLAGS.holdout) for path in FLAGS.demos]
     for path, (train_eps, val_eps) in zip(FLAGS.demos, splits):
         print(f"{path}: {len(train_eps)} training episodes, {len(val_eps)} held out")
     t0 = time.perf_counter()
     try:
-        host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)])
+        host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)],
+                                    task_weights)
     except ValueError as e:
         raise app.UsageError(f"--demos: {e}") from e
     first_train, first_val = splits[0]
     val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
     print(f"loaded {host.size} training and {val_host.size} held-out steps in {time.perf_counter() - t0:.1f}s")
+    if task_weights:
+        print(f"steps drawn by their task's failure weight: {task_weights}")
     h, w, _ = host.image.shape[1:]
     if w % h:
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
@@ -134,8 +145,8 @@ def _first(tree):
     return jax.device_put(tree, jax.local_devices()[0])
 
 
-def train_vla(out: Path, cfg: training.TrainConfig):
-    host, val_host, image_size, n_views = _tables()
+def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]):
+    host, val_host, image_size, n_views = _tables(task_weights)
     init = None
     if FLAGS.init:
         try:
@@ -180,19 +191,20 @@ def train_vla(out: Path, cfg: training.TrainConfig):
                 "val_decisive": [round(float(a), 4) for a in vm["decisive"]]}
 
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-                                                      "init": FLAGS.init, "compute_dtype": FLAGS.compute_dtype},
+                                                      "task_weights": task_weights, "init": FLAGS.init,
+                                                      "compute_dtype": FLAGS.compute_dtype},
                                text_vocab=language.VOCAB)
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
         checkpoint.save_policy(FLAGS.export, _first(state.params), model_cfg, tok,
-                               extra={k: meta[k] for k in ("train", "demos", "init", "compute_dtype")},
+                               extra={k: meta[k] for k in ("train", "demos", "task_weights", "init", "compute_dtype")},
                                text_vocab=language.VOCAB, param_dtype=FLAGS.export_param_dtype)
         print(f"policy checkpoint: {FLAGS.export}")
 
 
-def train_drafter(out: Path, cfg: training.TrainConfig):
+def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]):
     tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target, text_vocab=language.VOCAB)
-    host, val_host, _, _ = _tables()
+    host, val_host, _, _ = _tables(task_weights)
     if host.image.shape[1:] != model_cfg.image_shape:
         raise app.UsageError(f"the target takes images {model_cfg.image_shape}, the demos hold {host.image.shape[1:]}")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
@@ -203,7 +215,8 @@ def train_drafter(out: Path, cfg: training.TrainConfig):
     mngr = checkpoint.manager(out / "state")
     state = training.init_drafter_state(model_cfg, cfg)
     meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
-            "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos)}
+            "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
+            "task_weights": task_weights}
     if mngr.latest_step() is not None:
         state, old = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
         if old.get("target_fingerprint") != fp:
@@ -232,6 +245,7 @@ def main(argv):
     logging.set_verbosity(logging.WARNING)
     out = Path(FLAGS.out)
     try:
+        task_weights = tasks_lib.parse_suite_weights(cli.failure_weights(FLAGS.weights_from)) if FLAGS.weights_from else {}
         for path in FLAGS.demos:
             demos.DemoDataset(path)
         for name in ("init",) if FLAGS.model == "vla" else ("target",):
@@ -249,7 +263,7 @@ def main(argv):
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)
-    (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg)
+    (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg, task_weights)
 
 
 if __name__ == "__main__":

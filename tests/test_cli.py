@@ -30,6 +30,7 @@ CASES = [
     ("collect_demos", ["--devices=9", "--out=/nonexistent/demos"], "--devices=9: 1 local devices here"),
     ("collect_demos", ["--keep_total", "--out=/nonexistent/demos"], "--keep_total needs --weights_from"),
     ("train", ["--demos=/nonexistent/demos", "--out=/nonexistent/run"], "not a complete dataset"),
+    ("train", ["--weights_from=/nonexistent/eval.json", "--out=/nonexistent/run"], "weights from /nonexistent/eval.json"),
     ("ship_autotune", ["--methods=ar,nope"], "unknown ['nope']; choose from ['ar', 'drafter', 'expert'"),
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
     ("evaluate", ["--method=expert", "--target_scale=llama-1b"], "--method=expert takes none of --target_scale"),

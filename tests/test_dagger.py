@@ -141,6 +141,8 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     rounds = {s.split()[0]: cmd for s, cmd in stages}
     assert "--weights_from" not in rounds["dagger1"]  # no earlier round to weigh by
     assert f"--weights_from={tmp_path / 'w' / 'dagger1'} --keep_total" in rounds["dagger2"]  # the previous round's failures
+    # Fine-tuning is drawn by the failures of the policy it fine-tunes, where that policy drove alone (beta 0).
+    assert "--weights_from" not in rounds["train1"] and f"--weights_from={tmp_path / 'w' / 'dagger2'}" in rounds["train2"]
     # every training and collection stage
     assert all("--deterministic=false" in rounds[s] for s in ("demos", "dagger1", "train1", "dagger2", "train2",
                                                               "target_rollouts", "drafter"))

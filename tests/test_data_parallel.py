@@ -38,11 +38,11 @@ whole = sharding.replicate
 key = jax.random.PRNGKey(3)
 out = {"devices": mesh.size}
 
-def compare(name, single, parallel):
+def compare(name, single, parallel, key_name=None):
     (s1, m1), (s2, m2) = single, parallel
     p1, p2 = jax.tree.leaves(s1.params), jax.tree.leaves(s2.params)
     d0 = jax.tree.leaves(state0(name).params)
-    out[name] = {"loss": [float(m1["loss"]), float(m2["loss"])],
+    out[key_name or name] = {"loss": [float(m1["loss"]), float(m2["loss"])],
                  "max_param_diff": max(float(jnp.abs(a - b).max()) for a, b in zip(p1, p2)),
                  "max_update": max(float(jnp.abs(a - b).max()) for a, b in zip(p1, d0)),
                  "param_diff": sum(float(jnp.abs(a - b).sum()) for a, b in zip(p1, p2)),
@@ -59,6 +59,13 @@ def twice(step, state, *args):  # the schedule's first step has a learning rate 
 t_single, t_mesh = jax.device_put(table), whole(mesh, table)
 step1, stepm = training.make_train_step(cfg, tcfg, tok), training.make_train_step(cfg, tcfg, tok, mesh)
 compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key))
+
+# A table drawn by row weights (train --weights_from): the mesh draws the same rows.
+weighted = table.replace(cumulative_weight=np.cumsum(rng.integers(1, 5, n)).astype(np.int32))
+t_single, t_mesh = jax.device_put(weighted), whole(mesh, weighted)
+compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key),
+        "vla_weighted")
+t_single, t_mesh = jax.device_put(table), whole(mesh, table)
 
 tparams = state0("vla").params
 labels = tok.to_ids(table.action)
@@ -84,7 +91,7 @@ def two_devices():
     return json.loads(line[len("RESULT "):])
 
 
-@pytest.mark.parametrize("model", ["vla", "drafter"])
+@pytest.mark.parametrize("model", ["vla", "vla_weighted", "drafter"])
 def test_a_data_parallel_step_equals_the_single_device_step(two_devices, model):
     assert two_devices["devices"] == 2
     r = two_devices[model]
@@ -95,6 +102,8 @@ def test_a_data_parallel_step_equals_the_single_device_step(two_devices, model):
     # which Adam's normalisation can magnify for a parameter whose gradient is ~0
     assert r["param_diff"] < 1e-3 * r["update"]
     assert r["max_param_diff"] < 0.05 * r["max_update"]
+    if model == "vla_weighted":  # the weights reached the draw: other rows, another loss
+        assert r["loss"][0] != two_devices["vla"]["loss"][0]
 
 
 def test_a_batch_the_devices_cannot_split_is_refused(two_devices):

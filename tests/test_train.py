@@ -126,6 +126,32 @@ def test_a_table_of_several_datasets_holds_their_episodes_steps_in_order(dataset
         data.load_step_table([(str(dataset), None), (str(other.finalize()), None)])
 
 
+def test_task_weights_draw_each_step_in_proportion_to_its_tasks_weight(dataset, tmp_path):
+    """A table loaded with task weights holds each step's weight (its episode's task's) and
+    draws rows in proportion to it; one without, or whose weights are all 1, draws uniformly
+    with the very indices of `jax.random.randint` (builds without weights keep their data order)."""
+    ds = demos.DemoDataset(dataset)
+    path = tmp_path / "two_tasks"
+    w = demos.DatasetWriter(path, {"image_size": 16})
+    lengths, names = [3, 5, 2, 4], ["pick_red_block", "lift_blue_cylinder"] * 2
+    starts = np.cumsum([0, *lengths[:-1]])
+    w.add_shard({f: v[:sum(lengths)] for f, v in ds.shard(0).items()},
+                [dict(ds.episodes[0], task=t, start=int(s), length=n) for t, s, n in zip(names, starts, lengths)])
+    path = str(w.finalize())
+    weighted = data.load_step_table([(path, None)], task_weights={"pick_red_block": 3, "stack_red_on_green": 2})
+    expected = np.repeat([3, 1, 3, 1], lengths)
+    np.testing.assert_array_equal(np.diff(weighted.cumulative_weight, prepend=0), expected)
+    n, key = 48_000, jax.random.PRNGKey(0)
+    draw = jax.jit(data.draw_rows, static_argnums=2)
+    counts = np.bincount(np.asarray(draw(jax.device_put(weighted), key, n)), minlength=len(expected))
+    np.testing.assert_allclose(counts / n, expected / expected.sum(), rtol=0.1)  # ~5 sigma for a weight-1 row
+    for table in (data.load_step_table([(path, None)]), data.load_step_table([(path, None)], {"lift_blue_cylinder": 1})):
+        assert table.cumulative_weight is None
+        np.testing.assert_array_equal(draw(jax.device_put(table), key, 64), jax.random.randint(key, (64,), 0, table.size))
+    with pytest.raises(ValueError, match="positive integers"):
+        data.load_step_table([(path, None)], {"pick_red_block": 0})
+
+
 def test_a_longer_table_compiles_the_draw_again_not_the_update(dataset, caplog):
     """A DAgger round trains on a longer table than the round before. The update's program does
     not depend on the table's length, so the persistent cache answers it in every later round

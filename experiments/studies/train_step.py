@@ -20,6 +20,9 @@ device's time per step wherever the host keeps ahead of it:
   no_optimizer      the loss and its gradient, no AdamW update
   forward           the loss alone (minibatch draw included)
   draw              the minibatch draw alone (gather and shift)
+  weighted          the default step on a table drawn by row weights (train --weights_from:
+                    each row 1-4x, a binary search in their running sum per drawn row)
+  draw_weighted     that table's minibatch draw alone
 
 With `--trace_dir`, the default step is then traced for `--trace_calls` steps and summarised
 per device timeline (`timing.kernel_summary`: ms and kernel count per step, the largest
@@ -44,7 +47,8 @@ from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
 
 FLAGS = flags.FLAGS
-VARIANTS = ("default", "unpadded", "no_shift", "nondeterministic", "float32", "no_optimizer", "forward", "draw")
+VARIANTS = ("default", "unpadded", "no_shift", "nondeterministic", "float32", "no_optimizer", "forward", "draw",
+            "weighted", "draw_weighted")
 flags.DEFINE_list("variants", list(VARIANTS), f"Variants to time, of {list(VARIANTS)}.")
 flags.DEFINE_integer("batch_size", training.TrainConfig.batch_size, "Minibatch (build_target's default).")
 flags.DEFINE_integer("d_model", vla.VLAConfig.d_model, "Decoder width (build_target's default).")
@@ -73,6 +77,7 @@ def synthetic_table(cfg: vla.VLAConfig, n: int, seed: int = 0) -> data.StepTable
 def variant_fn(name: str, model_cfg: vla.VLAConfig, cfg: training.TrainConfig, tok: ActionTokenizer):
     """(jitted fn(state, table, key) -> (state, out), the config it runs) for variant `name`."""
     run_cfg = dataclasses.replace(model_cfg, dtype="bfloat16")
+    name = {"weighted": "default", "draw_weighted": "draw"}.get(name, name)  # the same step on a weighted table
     if name in ("default", "unpadded", "no_shift", "nondeterministic", "float32"):
         cfg = dataclasses.replace(cfg, image_shift=0 if name == "no_shift" else cfg.image_shift,
                                   deterministic=name != "nondeterministic",
@@ -123,16 +128,20 @@ def main(_):
     host = synthetic_table(model_cfg, FLAGS.table_steps)
     tok = ActionTokenizer.fit(host.action, model_cfg.vocab_size)
     table, key = jax.device_put(host), jax.random.PRNGKey(0)
+    # The same rows drawn by weights of 1-4 (as `data.load_step_table`'s task weights give).
+    row_weight = np.random.default_rng(1).integers(1, 5, table.size)
+    weighted = table.replace(cumulative_weight=jax.device_put(np.cumsum(row_weight).astype(np.int32)))
     state = training.init_state(model_cfg, cfg)
     result = {**results_io.provenance(cli.command_line()), "batch_size": FLAGS.batch_size, "d_model": FLAGS.d_model,
               "n_layers": FLAGS.n_layers, "prompt_len": model_cfg.prompt_len, "table_steps": FLAGS.table_steps,
               "steps": FLAGS.steps, "reps": FLAGS.reps, "variants": {}}
     for name in FLAGS.variants:
         fn = variant_fn(name, model_cfg, cfg, tok)
+        rows = weighted if name.endswith("weighted") else table
         t0 = time.perf_counter()
-        jax.block_until_ready(fn(state, table, key))  # compile and warm up
+        jax.block_until_ready(fn(state, rows, key))  # compile and warm up
         compile_s = time.perf_counter() - t0
-        ms = ms_per_step(fn, state, table, key, FLAGS.steps, FLAGS.reps)
+        ms = ms_per_step(fn, state, rows, key, FLAGS.steps, FLAGS.reps)
         result["variants"][name] = {"ms_per_step": round(ms, 3), "first_call_s": round(compile_s, 1)}
         print(f"{name:17s} {ms:8.3f} ms per step  (first call {compile_s:.1f} s)", flush=True)
         results_io.write_json_atomic(FLAGS.out, result)

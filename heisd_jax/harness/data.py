@@ -2,12 +2,15 @@
 
 The whole step table is loaded once into device memory (a demos dataset of the four suites
 is a few GB of 64x64 images: it fits on one accelerator), and minibatches are drawn inside
-the jitted train step by random indices, so the accelerator never waits on the host.
+the jitted train step by random indices, so the accelerator never waits on the host. The
+draw is uniform over the rows, or, for a table loaded with task weights, in proportion to
+each row's task's weight (a DAgger round's fine-tuning then sees most of the tasks its
+policy fails, however small their share of the aggregate).
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Mapping, Sequence
 
 import numpy as np
 from flax import struct
@@ -25,6 +28,8 @@ class StepTable:
     proprio: jnp.ndarray  # [N, 8]
     instruction: jnp.ndarray  # [N, L] int32
     action: jnp.ndarray  # [N, 7] float32
+    # Running sum of the rows' integer draw weights [N] int32, or None: every row alike.
+    cumulative_weight: jnp.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -36,12 +41,17 @@ def load_steps(path: str, episodes: list[int] | None = None) -> StepTable:
     return load_step_table([(path, episodes)])
 
 
-def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]]) -> StepTable:
+def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]],
+                    task_weights: Mapping[str, int] | None = None) -> StepTable:
     """The steps of several datasets' episodes ((path, episode indices or None for all), in
     order) as one host table. Each column is allocated once and filled episode by episode
     from the memory-mapped shards, so a table of N steps holds one copy of them in memory,
     not the episodes', the datasets' and their concatenation's (a build's last DAgger round
-    trains on ~1.3M steps, ~31 GB of images)."""
+    trains on ~1.3M steps, ~31 GB of images).
+
+    `task_weights` (task name -> a positive integer; tasks not named: 1) makes `draw_rows`
+    draw each step in proportion to its episode's task's weight. Where every step's weight
+    is 1 the table holds none, and draws as a table loaded without weights."""
     plan = []  # (dataset, episode index)
     for path, episodes in sources:
         ds = demos.DemoDataset(path)
@@ -55,6 +65,15 @@ def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]]) -> Step
     first = plan[0][0].shard(plan[0][0].episodes[plan[0][1]]["shard"])
     table = StepTable(**{f: np.empty((n, *first[f].shape[1:]), first[f].dtype) for f in ("image", "proprio", "action")},
                       instruction=np.empty((n, language.MAX_INSTRUCTION_TOKENS), np.int32))
+    weights = task_weights or {}
+    if any(not isinstance(n, int) or n < 1 for n in weights.values()):
+        raise ValueError(f"task weights must be positive integers: {dict(weights)}")
+    row_weight = np.concatenate([np.full(ds.episodes[i]["length"], weights.get(ds.episodes[i]["task"], 1), np.int64)
+                                 for ds, i in plan])
+    if row_weight.sum() >= 2**31:
+        raise ValueError(f"the task weights sum to {row_weight.sum()} over the table's rows: at most 2**31 - 1")
+    if np.any(row_weight != 1):
+        table = table.replace(cumulative_weight=np.cumsum(row_weight).astype(np.int32))
     row = 0
     for ds, i in plan:
         e = ds.episodes[i]
@@ -93,12 +112,22 @@ def random_shift(images: jnp.ndarray, key: jax.Array, max_shift: int, n_views: i
     return jax.vmap(lambda im, o: jax.lax.dynamic_slice(im, (o[0], o[1], 0), (h, w, im.shape[-1])))(padded, offsets)
 
 
+def draw_rows(table: StepTable, key: jax.Array, batch: int) -> jnp.ndarray:
+    """`batch` random row indices [B] of the table, drawn with replacement: uniformly, or, where
+    the table holds row weights, each row in proportion to its weight (an integer drawn below
+    the weights' total, located in their running sum by binary search: exact, and O(B log N))."""
+    if table.cumulative_weight is None:
+        return jax.random.randint(key, (batch,), 0, table.size)
+    cum = table.cumulative_weight
+    return jnp.searchsorted(cum, jax.random.randint(key, (batch,), 0, cum[-1]), side="right").astype(jnp.int32)
+
+
 def sample_batch(table: StepTable, key: jax.Array, batch: int, tok: ActionTokenizer, image_shift: int = 0,
                  n_views: int = 1):
-    """A random minibatch: (vla.Observation, action token ids [B, 7]), each view of the
-    images optionally randomly shifted by up to `image_shift` pixels."""
+    """A random minibatch (`draw_rows`): (vla.Observation, action token ids [B, 7]), each view
+    of the images optionally randomly shifted by up to `image_shift` pixels."""
     k_idx, k_shift = jax.random.split(key)
-    i = jax.random.randint(k_idx, (batch,), 0, table.size)
+    i = draw_rows(table, k_idx, batch)
     obs = vla.Observation(image=random_shift(table.image[i], k_shift, image_shift, n_views), instruction=table.instruction[i],
                           proprio=table.proprio[i])
     return obs, tok.to_ids(table.action[i])

@@ -260,7 +260,7 @@ def make_drafter_step(model_cfg: vla.VLAConfig, cfg: TrainConfig, mesh: Mesh | N
 
     def draw(table: data.StepTable, tokens, step, key):
         k_idx, k_shift = jax.random.split(jax.random.fold_in(key, step))
-        i = jax.random.randint(k_idx, (cfg.batch_size,), 0, table.size)
+        i = data.draw_rows(table, k_idx, cfg.batch_size)
         obs = vla.Observation(image=data.random_shift(table.image[i], k_shift, cfg.image_shift, model_cfg.n_views),
                               instruction=table.instruction[i], proprio=table.proprio[i])
         return obs, tokens[i]
