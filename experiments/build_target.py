@@ -106,7 +106,7 @@ flags.DEFINE_string("start", "", "Start the DAgger rounds from this policy check
                     "policy on the demonstrations (continuing an earlier build).")
 cli.existing_dir("start", "policy checkpoint")
 
-TIME = {"time": r"\ntime: ([^\n]*)"}  # a collection's or evaluation's split of its seconds
+TIME = {"time": r"\ntime: ([^\n]*)"}  # a collection's, training's or evaluation's split of its seconds
 SKIPPABLE = ("eval", "drafter", "datastore", "calibration")
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -171,7 +171,7 @@ def plan(w: Path) -> list[Stage]:
     model = [f"--d_model={FLAGS.d_model}", f"--n_layers={FLAGS.n_layers}", f"--batch_size={FLAGS.batch_size}",
              f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
-    acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])'}
+    acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])', **TIME}
     stages = [Stage("demos", ["collect_demos", *collect, *labels, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
                               f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
                               f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
@@ -229,7 +229,7 @@ def plan(w: Path) -> list[Stage]:
                                         f"--batch_size={FLAGS.batch_size}", "--lr=1e-3", f"--warmup_steps={min(200, FLAGS.drafter_steps // 4)}",
                                         "--log_every=500", "--ckpt_every=1000", f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}",
                                         f"--export={w / 'drafter'}"],
-                            w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])'}))
+                            w / "drafter", {"val_top1": r'"val_top1": (\[[^\]]*\])', **TIME}))
     source = rollouts if FLAGS.datastore_source == "rollouts" else w / "demos"
     if "datastore" not in FLAGS.skip:
         stages.append(Stage("datastore", ["build_datastore", f"--demos={source}", f"--checkpoint={final}",

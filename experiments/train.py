@@ -18,7 +18,8 @@ table are replicated on each, every minibatch is split over them (`heisd_jax.har
 
 Training state is checkpointed with orbax under --out/state every --ckpt_every steps; a
 rerun with the same --out resumes from the latest one. Loss and per-dimension token
-accuracy are printed and appended to --out/log.jsonl.
+accuracy are printed and appended to --out/log.jsonl. The last line splits the stage's wall
+time, from the process's imports to the export (`time: ...`; build_target records it).
 """
 
 from __future__ import annotations
@@ -26,6 +27,9 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+
+T_START = time.perf_counter()  # the time split counts the imports below (JAX, MuJoCo)
+
 from pathlib import Path
 
 import jax
@@ -80,25 +84,60 @@ flags.DEFINE_bool("deterministic", True, "Compile the training step with determi
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
+class Phases:
+    """The stage's wall time split into named phases: `lap(name)` adds the time since the last
+    lap (or the process's imports) to `name`."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+        self.mark = T_START
+        self.steps = 0  # optimizer steps run
+
+    def lap(self, name: str):
+        now = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.mark
+        self.mark = now
+
+    def line(self) -> str:
+        parts = " + ".join(f"{name} {sec:.0f}s" + (f" ({self.steps} after the first)" if name == "steps" else "")
+                           for name, sec in self.seconds.items())
+        return f"time: {sum(self.seconds.values()):.0f}s = {parts}"
+
+
+PHASES = Phases()
+
+
 def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
-    """Optimizer steps with logging, periodic checkpoints and the time budget; resumable."""
+    """Optimizer steps with logging, periodic checkpoints and the time budget; resumable. The
+    steps run asynchronously; the loop waits for them only where it logs, saves or ends, so
+    `PHASES` counts their device time under "steps" (the first, with its compile, apart)."""
     t0, log = time.perf_counter(), open(out / "log.jsonl", "a")
     key = jax.random.PRNGKey(cfg.seed + 1)
-    s = int(state.step)  # counted on the host: reading state.step would wait for every step
+    s = first = int(state.step)  # counted on the host: reading state.step would wait for every step
+    PHASES.lap("setup")
     while s < cfg.steps:
         state, m = step_fn(state, key)
         s += 1
+        if s == first + 1:  # the first step waits for its programs' compile (or cache load)
+            jax.block_until_ready(m)
+            PHASES.lap("first step")
         out_of_time = FLAGS.time_budget_s > 0 and time.perf_counter() - t0 > FLAGS.time_budget_s
         if s % FLAGS.log_every == 0 or s == cfg.steps or out_of_time:
+            jax.block_until_ready(m)
+            PHASES.lap("steps")
             rec = {"step": s, **record_fn(state, m, s), "elapsed_s": round(time.perf_counter() - t0, 1)}
             print(json.dumps(rec), flush=True)
             log.write(json.dumps(rec) + "\n")
             log.flush()
+            PHASES.lap("held-out evaluation")
         if s % FLAGS.ckpt_every == 0 or s == cfg.steps or out_of_time:
             checkpoint.save(mngr, s, state, meta)
+            PHASES.lap("checkpoints")
         if out_of_time:
             print(f"time budget spent: stopping at step {s} of {cfg.steps}")
             break
+    PHASES.lap("steps")
+    PHASES.steps = max(s - first - 1, 0)
     return state
 
 
@@ -119,6 +158,7 @@ def _tables(task_weights: dict[str, int]):
     first_train, first_val = splits[0]
     val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
     print(f"loaded {host.size} training and {val_host.size} held-out steps in {time.perf_counter() - t0:.1f}s")
+    PHASES.lap("load")
     if task_weights:
         print(f"steps drawn by their task's failure weight: {task_weights}")
     h, w, _ = host.image.shape[1:]
@@ -200,6 +240,7 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
                                extra={k: meta[k] for k in ("train", "demos", "task_weights", "init", "compute_dtype")},
                                text_vocab=language.VOCAB, param_dtype=FLAGS.export_param_dtype)
         print(f"policy checkpoint: {FLAGS.export}")
+        PHASES.lap("export")
 
 
 def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]):
@@ -211,6 +252,7 @@ def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, 
     t0 = time.perf_counter()
     tokens, val_tokens = (training.greedy_tokens(tparams, model_cfg, t) for t in (table, val_table))
     print(f"target greedy tokens of {table.size + val_table.size} steps in {time.perf_counter() - t0:.1f}s")
+    PHASES.lap("target tokens")
     fp = checkpoint.fingerprint(tparams)
     mngr = checkpoint.manager(out / "state")
     state = training.init_drafter_state(model_cfg, cfg)
@@ -238,6 +280,7 @@ def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, 
     if FLAGS.export:
         checkpoint.save_drafter(FLAGS.export, state.params, model_cfg, tparams, extra={"train": meta["train"]})
         print(f"drafter checkpoint: {FLAGS.export}")
+        PHASES.lap("export")
 
 
 def main(argv):
@@ -263,7 +306,9 @@ def main(argv):
     except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)
+    PHASES.lap("start")
     (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg, task_weights)
+    print(PHASES.line())
 
 
 if __name__ == "__main__":

@@ -25,6 +25,8 @@ def test_build_from_nothing_smoke_run_and_resume(tmp_path):
     assert list(stages) == ["demos", "train0", "dagger1", "train1", "eval"]
     assert all(s["seconds"] > 0 for s in stages.values())
     assert "compile" in stages["demos"]["time"] and "policy_success" in stages["dagger1"]
+    # a training stage splits its seconds too, the imports through the export
+    assert all(part in stages["train0"]["time"] for part in ("start", "load", "first step", "steps", "export"))
     assert len(json.loads(stages["train1"]["held_out_decisive"])) == 7
     assert (work / "vla1" / "0").is_dir() and (work / "eval_ar.json").exists()
     before = (work / "build.json").read_text()
