@@ -61,7 +61,7 @@ step1, stepm = training.make_train_step(cfg, tcfg, tok), training.make_train_ste
 compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key))
 
 # A table drawn by row weights (train --weights_from): the mesh draws the same rows.
-weighted = table.replace(cumulative_weight=np.cumsum(rng.integers(1, 5, n)).astype(np.int32))
+weighted = data.with_row_weights(table, rng.integers(1, 5, n))
 t_single, t_mesh = jax.device_put(weighted), whole(mesh, weighted)
 compare("vla", twice(step1, state0("vla"), t_single, key), twice(stepm, whole(mesh, state0("vla")), t_mesh, key),
         "vla_weighted")

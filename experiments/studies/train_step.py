@@ -129,8 +129,7 @@ def main(_):
     tok = ActionTokenizer.fit(host.action, model_cfg.vocab_size)
     table, key = jax.device_put(host), jax.random.PRNGKey(0)
     # The same rows drawn by weights of 1-4 (as `data.load_step_table`'s task weights give).
-    row_weight = np.random.default_rng(1).integers(1, 5, table.size)
-    weighted = table.replace(cumulative_weight=jax.device_put(np.cumsum(row_weight).astype(np.int32)))
+    weighted = jax.device_put(data.with_row_weights(table, np.random.default_rng(1).integers(1, 5, table.size)))
     state = training.init_state(model_cfg, cfg)
     result = {**results_io.provenance(cli.command_line()), "batch_size": FLAGS.batch_size, "d_model": FLAGS.d_model,
               "n_layers": FLAGS.n_layers, "prompt_len": model_cfg.prompt_len, "table_steps": FLAGS.table_steps,

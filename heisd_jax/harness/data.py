@@ -66,14 +66,8 @@ def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]],
     table = StepTable(**{f: np.empty((n, *first[f].shape[1:]), first[f].dtype) for f in ("image", "proprio", "action")},
                       instruction=np.empty((n, language.MAX_INSTRUCTION_TOKENS), np.int32))
     weights = task_weights or {}
-    if any(not isinstance(n, int) or n < 1 for n in weights.values()):
-        raise ValueError(f"task weights must be positive integers: {dict(weights)}")
-    row_weight = np.concatenate([np.full(ds.episodes[i]["length"], weights.get(ds.episodes[i]["task"], 1), np.int64)
-                                 for ds, i in plan])
-    if row_weight.sum() >= 2**31:
-        raise ValueError(f"the task weights sum to {row_weight.sum()} over the table's rows: at most 2**31 - 1")
-    if np.any(row_weight != 1):
-        table = table.replace(cumulative_weight=np.cumsum(row_weight).astype(np.int32))
+    table = with_row_weights(table, np.concatenate([np.full(ds.episodes[i]["length"], weights.get(ds.episodes[i]["task"], 1))
+                                                    for ds, i in plan]))
     row = 0
     for ds, i in plan:
         e = ds.episodes[i]
@@ -84,6 +78,22 @@ def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]],
         table.instruction[out] = language.to_ids(e["instruction"])
         row += e["length"]
     return table
+
+
+def with_row_weights(table: StepTable, row_weight: np.ndarray) -> StepTable:
+    """`table` drawn by `draw_rows` in proportion to `row_weight` ([N] positive integers): their
+    running sum is stored, or nothing where every weight is 1 (the uniform draw). ValueError
+    for a weight that is not a positive integer, or a total beyond int32."""
+    row_weight = np.asarray(row_weight)
+    if row_weight.shape != (table.size,) or not np.issubdtype(row_weight.dtype, np.integer) or np.any(row_weight < 1):
+        raise ValueError(f"row weights must be positive integers, one per row of the table's {table.size}; "
+                         f"got {row_weight.dtype} {row_weight.shape}, values {np.unique(row_weight)[:8]}")
+    total = int(row_weight.sum(dtype=np.int64))
+    if total >= 2**31:
+        raise ValueError(f"the row weights sum to {total}: at most 2**31 - 1")
+    if np.all(row_weight == 1):
+        return table.replace(cumulative_weight=None)
+    return table.replace(cumulative_weight=np.cumsum(row_weight, dtype=np.int64).astype(np.int32))
 
 
 def random_episode_split(path: str, holdout: float, seed: int = 0) -> tuple[list[int], list[int]]:
