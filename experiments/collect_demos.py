@@ -16,7 +16,6 @@ where the policy goes wrong are the point). The dataset appears at --out only on
 from __future__ import annotations
 
 import dataclasses
-import time
 
 import jax
 import jax.numpy as jnp
@@ -30,6 +29,7 @@ from envs.env import EnvConfig, TabletopEnv
 from experiments import cli
 from heisd_jax import sharding, xla_options
 from heisd_jax.harness import executable_store as store_lib
+from heisd_jax.timing import Phases
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
@@ -140,7 +140,7 @@ def main(argv):
         mix = dict(teacher=policy, beta=beta) if dagger else {}
         return rollout.record_episodes(env, acting, keys, tids, n_steps, exec_noise=FLAGS.action_noise, limit=limit, **mix)
 
-    programs, seconds, stored = {}, dict(compile=0.0, run=0.0, fetch=0.0, host=0.0), []
+    programs, stored = {}, []
     options = xla_options.determinism(FLAGS.deterministic)
     beta = jnp.float32(FLAGS.beta)
     # What the program closes over beyond its inputs' shapes (the code is in the store's key):
@@ -158,12 +158,12 @@ def main(argv):
         devices; returns without waiting, so the host can fetch the previous batch meanwhile."""
         size = batch[0].shape[0]
         if size not in programs:
-            t0 = time.perf_counter()
+            phases.lap("run")
             with jax.set_mesh(mesh):  # the camera kernel splits its batch as the envs are split
                 programs[size], hit = store_lib.compile_or_load(
                     store, identity, jax.jit(record_fn), (params, beta, *batch, jnp.int32(limit)), options)
             stored.append(hit)
-            seconds["compile"] += time.perf_counter() - t0
+            phases.lap("compile")
         return programs[size](params, beta, *batch, jnp.int32(limit))
 
     def start_fetch(running, n):
@@ -178,9 +178,9 @@ def main(argv):
         finish = sharding.start_fetch_slice(traj, (slice(0, int(step.max(initial=0))), slice(0, n)))
 
         def done():
-            t1 = time.perf_counter()
+            phases.lap("run")
             out = success, step, finish()
-            seconds["fetch"] += time.perf_counter() - t1
+            phases.lap("fetch")
             return out
         return done
 
@@ -190,7 +190,7 @@ def main(argv):
     def write(chunk, success, step, traj):
         """Slices the batch's episodes (a DAgger round keeps every one, the expert's only its
         successes) and adds them to the dataset as one shard; returns how many it kept."""
-        t0 = time.perf_counter()
+        phases.lap("run")
         steps, records, row = {f: [] for f in demos.STEP_FIELDS}, [], 0
         for i, (t, e) in enumerate(chunk):
             if not (success[i] or dagger):
@@ -208,10 +208,13 @@ def main(argv):
             row += n
         if records:
             writer.add_shard({f: np.concatenate(v) for f, v in steps.items()}, records)
-        seconds["host"] += time.perf_counter() - t0
+        phases.lap("host")
         return len(records)
 
-    loop_start = time.perf_counter()
+    # The loop's seconds, lapped by launch, start_fetch and write: whatever of it is not
+    # compiling, fetching or writing is the devices running (or the host waiting on them),
+    # lapped as "run": where the host blocks moves with the overlap, so it is not timed at one call.
+    phases = Phases(seconds=dict(compile=0.0, run=0.0, fetch=0.0, host=0.0))
     try:
         with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} episodes"),
                       TextColumn("kept {task.fields[kept]}"), TimeRemainingColumn()) as bar:
@@ -233,20 +236,16 @@ def main(argv):
                     kept += write(done_chunk, *finish())
                     bar.update(job, advance=len(done_chunk), kept=kept)
                 fetching = (start_fetch(running, len(chunk)), chunk) if running is not None else None
-        t0 = time.perf_counter()
+        phases.lap("run")
         path = writer.finalize()
-        seconds["host"] += time.perf_counter() - t0
+        phases.lap("host")
     except BaseException:
         writer.abort()
         raise
-    # Whatever of the loop is not compiling, fetching or writing is the devices running (or the
-    # host waiting on them): where the host blocks moves with the overlap, so it is not timed
-    # at one call.
-    seconds["run"] = time.perf_counter() - loop_start - seconds["compile"] - seconds["fetch"] - seconds["host"]
-    print(f"time: {sum(seconds.values()):.0f}s = compile {seconds['compile']:.0f}s ({len(programs)} programs, "
-          f"{sum(stored)} loaded from the executable store) + run "
-          f"{seconds['run']:.0f}s ({len(batches)} batches over {mesh.size} devices) + fetch {seconds['fetch']:.0f}s + "
-          f"host {seconds['host']:.0f}s (episodes sliced and written)")
+    phases.lap("run")
+    phases.notes.update(compile=f"{len(programs)} programs, {sum(stored)} loaded from the executable store",
+                        run=f"{len(batches)} batches over {mesh.size} devices", host="episodes sliced and written")
+    print(phases.line())
     if dagger:
         n_succ = sum(r.get("success", False) for r in demos.DemoDataset(path).episodes)
         print(f"DAgger: {kept} episodes, policy success {n_succ / max(kept, 1):.1%} (beta {FLAGS.beta}); policy action "

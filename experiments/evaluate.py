@@ -25,6 +25,7 @@ import jax
 
 from heisd_jax import results_io, sharding
 from heisd_jax.harness import evaluator as ev, methods
+from heisd_jax.timing import Phases, split_text
 from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
@@ -55,7 +56,8 @@ cli.define_physics_flag()
 
 def main(argv):
     del argv
-    t_main = time.perf_counter()
+    host_phases = Phases(mark=T_START)  # the host's seconds before the batches, from the imports
+    host_phases.lap("start")
     logging.set_verbosity(logging.WARNING)
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
@@ -91,14 +93,14 @@ def main(argv):
     if FLAGS.compile_only:
         split = ev.compile_rollout(env, policy, cfg, done, store=store)
         print(f"{FLAGS.method}: {n_todo} episodes pending, {cfg.num_envs} envs: " +
-              (f"compiled in {_split_text(split)}" if split else "nothing to compile"))
-        print(f"time: {time.perf_counter() - T_START:.0f}s wall")
+              (f"compiled in {_compile_text(split)}" if split else "nothing to compile"))
+        print(split_text(time.perf_counter() - T_START, {}, label="wall"))
         return
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")
-    t_start = time.perf_counter()
     # host = start (imports, flags, cache set-up) + setup (the env, the policy and what it
     # loads, the store's digests; the device's start-up) + other (inputs, results written)
-    host_split = {"start": t_main - T_START, "setup": t_start - t_main}
+    host_phases.lap("setup")
+    t_start = host_phases.mark  # the batches start: `elapsed` counts from here
     progress = {"episodes": n_total - n_todo}
     # Wall-clock of this invocation's batches (a resumed run times only what it ran). Its wall
     # time splits into compile (the rollout's, tracing included), run (the batches: device
@@ -123,7 +125,8 @@ def main(argv):
             timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
         timing["wall_seconds"] = time.perf_counter() - T_START
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
-        timing["host_split"] = {**host_split, "other": timing["host_seconds"] - sum(host_split.values())}
+        timing["host_split"] = {**host_phases.seconds,
+                                "other": timing["host_seconds"] - sum(host_phases.seconds.values())}
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
                                                  "timing": timing, **as_ar, **made})
         return summary
@@ -154,15 +157,17 @@ def main(argv):
     if timing["control_steps"]:
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
-    print(f"time: {timing['wall_seconds']:.0f}s wall = compile {timing['compile_seconds']:.0f}s + run "
-          f"{timing['batch_seconds']:.0f}s + host {timing['host_seconds']:.0f}s (start {host_split['start']:.1f}s, "
-          f"env and policy {host_split['setup']:.1f}s, other {timing['host_split']['other']:.1f}s)")
+    host = timing["host_split"]
+    print(split_text(timing["wall_seconds"], {"compile": timing["compile_seconds"], "run": timing["batch_seconds"],
+                                              "host": timing["host_seconds"]},
+                     notes={"host": f"start {host['start']:.1f}s, env and policy {host['setup']:.1f}s, "
+                                    f"other {host['other']:.1f}s"}, label="wall"))
     if timing.get("compile_split"):
-        print(f"compile: {_split_text({**timing['compile_split'], 'total': timing['compile_seconds']})}")
+        print(f"compile: {_compile_text({**timing['compile_split'], 'total': timing['compile_seconds']})}")
     print(f"results: {os.path.abspath(FLAGS.out)}")
 
 
-def _split_text(split: dict[str, float]) -> str:
+def _compile_text(split: dict[str, float]) -> str:
     """The compile's seconds as words: a static batch's one program, or a queue's programs
     (`{program}_{stage}` keys; their XLA compiles overlap, so they add up to more than the total)."""
     def stages(pre: str) -> str:

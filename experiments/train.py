@@ -40,6 +40,7 @@ import envs  # noqa: F401  (XLA CPU flags before JAX starts)
 from envs import demos, language, tasks as tasks_lib
 from heisd_jax import checkpoint, sharding, vla
 from heisd_jax.harness import data, training, vla_policy
+from heisd_jax.timing import Phases
 from heisd_jax.tokenizer import ActionTokenizer
 from experiments import cli
 
@@ -84,27 +85,7 @@ flags.DEFINE_bool("deterministic", True, "Compile the training step with determi
 flags.DEFINE_float("time_budget_s", 0, "If > 0, stop (checkpoint and export) after this many seconds of training.")
 
 
-class Phases:
-    """The stage's wall time split into named phases: `lap(name)` adds the time since the last
-    lap (or the process's imports) to `name`."""
-
-    def __init__(self):
-        self.seconds: dict[str, float] = {}
-        self.mark = T_START
-        self.steps = 0  # optimizer steps run
-
-    def lap(self, name: str):
-        now = time.perf_counter()
-        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.mark
-        self.mark = now
-
-    def line(self) -> str:
-        parts = " + ".join(f"{name} {sec:.0f}s" + (f" ({self.steps} after the first)" if name == "steps" else "")
-                           for name, sec in self.seconds.items())
-        return f"time: {sum(self.seconds.values()):.0f}s = {parts}"
-
-
-PHASES = Phases()
+PHASES = Phases(mark=T_START)  # the stage's wall time in named phases, from the process's imports
 
 
 def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
@@ -137,7 +118,7 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
             print(f"time budget spent: stopping at step {s} of {cfg.steps}")
             break
     PHASES.lap("steps")
-    PHASES.steps = max(s - first - 1, 0)
+    PHASES.notes["steps"] = f"{max(s - first - 1, 0)} after the first"
     return state
 
 

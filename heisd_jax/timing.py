@@ -1,4 +1,5 @@
-"""How a piece of JAX code is timed, in one place, three ways:
+"""How time is measured, in one place: a piece of JAX code timed three ways, and a run's wall
+time split into named phases.
 
 - wall clock per call (`timed`, `wall_seconds`, `median_seconds`): a jitted call blocked
   on, after an untimed warm-up call; what the benchmark scripts report;
@@ -7,18 +8,22 @@
   pays one dispatch per action, not per pass);
 - per kernel (`trace_calls`, `kernel_summary`): a `jax.profiler` trace summarised per
   device timeline (experiments/studies/trace_decode.py, experiments/profile.py); `write_hlo` keeps
-  the optimised HLO that names those kernels (its fusions).
+  the optimised HLO that names those kernels (its fusions);
+- a run's phases (`Phases`, `split_text`): an entry point's wall time as named parts that sum
+  to it, printed as one line, `time: 12s = compile 3s (2 programs) + run 9s`, the line
+  experiments/build_target.py records per stage (collect_demos, train, evaluate print it).
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import gzip
 import json
 import functools
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Mapping
 
 import jax
 import jax.numpy as jnp
@@ -187,3 +192,38 @@ def device_gaps(path: str | Path, min_ms: float = 0.5, top: int = 10) -> dict[st
                          "host": inner["name"] if inner else None, "host_ms": inner["dur"] / 1e3 if inner else None})
         out[line] = rows
     return out
+
+
+def split_text(total: float, parts: Mapping[str, float], notes: Mapping[str, str] | None = None,
+               label: str = "") -> str:
+    """A run's time split as its one printed line, `time: {total}s {label} = {name} {seconds}s
+    ({note}) + ...`: whole seconds, the parts in the order given, a part's note in parentheses
+    after it, no ` = ...` without parts. The one format of that line, which
+    experiments/build_target.py parses out of each stage's output."""
+    notes = notes or {}
+    head = f"time: {total:.0f}s" + (f" {label}" if label else "")
+    if not parts:
+        return head
+    return head + " = " + " + ".join(f"{name} {sec:.0f}s" + (f" ({notes[name]})" if notes.get(name) else "")
+                                     for name, sec in parts.items())
+
+
+@dataclasses.dataclass
+class Phases:
+    """A run's wall time split into named phases: `lap(name)` adds the seconds since the last
+    lap (or since `mark`, the run's start) to `name`, so the phases cover the run without gaps
+    or overlaps and sum to its wall time. `seconds` given up front fixes the order of the
+    printed parts (a phase lapped first may come later); `notes` are printed beside them."""
+
+    mark: float = dataclasses.field(default_factory=time.perf_counter)  # perf_counter() of the last lap
+    seconds: dict[str, float] = dataclasses.field(default_factory=dict)
+    notes: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.seconds[name] = self.seconds.get(name, 0.0) + now - self.mark
+        self.mark = now
+
+    def line(self) -> str:
+        """`split_text` of the phases, their sum the total."""
+        return split_text(sum(self.seconds.values()), self.seconds, self.notes)

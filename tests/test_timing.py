@@ -1,5 +1,6 @@
-"""Per-kernel trace summaries (heisd_jax.timing, behind experiments/studies/trace_decode.py): a traced
-jitted call shows up on a device timeline, with its time split per call."""
+"""heisd_jax.timing: per-kernel trace summaries (behind experiments/studies/trace_decode.py), a
+traced jitted call showing up on a device timeline with its time split per call; and a run's
+phases, printed as the `time:` line experiments/build_target.py records."""
 
 import gzip
 import json
@@ -83,3 +84,39 @@ def test_device_gaps_name_what_the_device_waited_for(tmp_path):
         json.dump({"traceEvents": events + [dict(e, ts=e["ts"] + 10_000) for e in events[4:7]]}, f)
     summary = timing.kernel_summary(path, calls=2, top=1)["/device:GPU:0 | Stream #7"]
     assert summary["top"] == [("conv", pytest.approx(1.0))] and summary["launches"] == {"conv": 1.0}
+
+
+def test_split_text_is_the_time_line_in_whole_seconds_parts_in_the_order_given():
+    line = timing.split_text(12.4, {"run": 8.8, "compile": 3.6}, notes={"compile": "2 programs"})
+    assert line == "time: 12s = run 9s + compile 4s (2 programs)"
+    # Each figure rounded on its own (half to even), so the parts need not add up to the total shown.
+    assert timing.split_text(2.5, {"a": 0.5, "b": 1.5, "c": 0.5}) == "time: 2s = a 0s + b 2s + c 0s"
+    # An empty note prints nothing; a note of a part not given is not printed.
+    assert timing.split_text(3, {"a": 1, "b": 2}, notes={"a": "", "z": "absent"}) == "time: 3s = a 1s + b 2s"
+    assert timing.split_text(61.7, {}, label="wall") == "time: 62s wall"  # evaluate --compile_only
+    assert (timing.split_text(100.2, {"compile": 40.4, "run": 50.6, "host": 9.2}, label="wall",
+                              notes={"host": "start 3.1s, env and policy 4.0s, other 2.1s"})
+            == "time: 100s wall = compile 40s + run 51s + host 9s (start 3.1s, env and policy 4.0s, other 2.1s)")
+
+
+def test_phases_cover_the_run_so_their_sum_is_its_wall_time(monkeypatch):
+    clock = iter([1.4, 2.0, 3.0, 3.3, 7.9])
+    monkeypatch.setattr(timing.time, "perf_counter", lambda: next(clock))
+    # Declared up front, compile..host print in that order whichever is lapped first.
+    phases = timing.Phases(mark=0.0, seconds=dict(compile=0.0, run=0.0, fetch=0.0, host=0.0))
+    for name in ("run", "compile", "run", "host", "run"):  # a phase lapped twice adds up
+        phases.lap(name)
+    assert phases.mark == 7.9
+    assert list(phases.seconds) == ["compile", "run", "fetch", "host"]
+    assert sum(phases.seconds.values()) == pytest.approx(7.9)  # no gaps, no overlaps: mark to the last lap
+    assert phases.seconds == pytest.approx({"compile": 0.6, "run": 1.4 + 1.0 + 4.6, "fetch": 0.0, "host": 0.3})
+    phases.notes.update(compile="1 programs, 0 loaded from the executable store",
+                        run="2 batches over 1 devices", host="episodes sliced and written")
+    assert phases.line() == ("time: 8s = compile 1s (1 programs, 0 loaded from the executable store) + run 7s "
+                             "(2 batches over 1 devices) + fetch 0s + host 0s (episodes sliced and written)")
+    # Undeclared phases print in the order first lapped (experiments/train.py's stages).
+    clock = iter([0.4, 2.0, 2.6])
+    phases = timing.Phases(mark=0.0, notes={"steps": "7 after the first"})
+    for name in ("start", "load", "steps"):
+        phases.lap(name)
+    assert phases.line() == "time: 3s = start 0s + load 2s + steps 1s (7 after the first)"
