@@ -11,7 +11,10 @@ build_datastore, calibrate_boundary), run as a subprocess with its output in
 --work/logs/<stage>.log. A stage is done when its output exists (datasets and checkpoints
 are published atomically by those commands), so rerunning the same command after an
 interruption skips what is done and resumes the stage that was cut off (training resumes
-from its last orbax checkpoint). --work/build.json records the settings (a rerun with
+from its last orbax checkpoint); a stage whose output is gone runs again only where a stage
+still to run reads it, so a build moved to another machine with its newest policy and
+evaluation resumes after them. --fresh_round adds one round after the evaluation on fresh,
+failure-weighted data alone (docs/target.md). --work/build.json records the settings (a rerun with
 other settings is refused) and, per stage, its wall time and the figures it printed (DAgger
 success of the policy that drove, held-out token accuracy and decisiveness (the share of tokens
 whose greedy bin has probability > 0.5), evaluation success, a collection's time split).
@@ -58,6 +61,14 @@ flags.DEFINE_bool("adapt_weights", False, "Follow where the policy fails: from t
                   "every round runs one compiled program), and each round whose policy drove alone (beta 0) "
                   "fine-tunes on the aggregate drawn by that round's failures (train --weights_from: the policy it "
                   "fine-tunes is the one that failed them).")
+flags.DEFINE_bool("fresh_round", False, "After the evaluation, one DAgger round more on fresh data only: the final "
+                  "policy drives alone (beta 0) and the expert demonstrates afresh, both collections shared out by that "
+                  "evaluation's failures (collect_demos --weights_from=eval_ar.json --keep_total: up to 4x, on top of "
+                  "--suite_weights, at the totals of the build's own collections, so their programs are reused), the "
+                  "policy fine-tuned on those two datasets alone (--dagger_steps, the last label std) and evaluated "
+                  "again (eval_ar_fresh.json); it is the build's final policy. Needs the evaluation (not in --skip). "
+                  "Its inputs are the last policy and eval_ar.json, which a lost machine's last poll brings back: a "
+                  "build resumed elsewhere from those two runs only the fresh round's stages.")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -129,11 +140,34 @@ class Stage:
             return (self.output / "0").is_dir()
         return True  # datasets, datastores and boundary files are published whole
 
+    def reads(self, other: Stage) -> bool:
+        """Whether this stage's command names `other`'s output among its flags' values."""
+        return any(str(other.output) in arg.split("=", 1)[-1].split(",") for arg in self.args)
+
+
+def to_run(stages: list[Stage]) -> list[bool]:
+    """Which stages still run: each one not done whose output is still wanted, by a stage that
+    still runs or, where no stage reads it, as one of the build's results. A stage whose output
+    is gone but whose every reader is done is not rerun: a build resumed on another machine
+    from what a lost one's last poll brought back (build.json, the newest policy, the
+    evaluation) runs only what comes after them, where it needs no earlier dataset."""
+    run = [False] * len(stages)
+    for i in reversed(range(len(stages))):
+        if not stages[i].done():
+            readers = [j for j in range(i + 1, len(stages)) if stages[j].reads(stages[i])]
+            run[i] = not readers or any(run[j] for j in readers)
+    return run
+
 
 def _policy(w: Path, r: int) -> Path:
     if r == 0 and FLAGS.start and not FLAGS.steps:
         return Path(FLAGS.start).absolute()
     return w / f"vla{r}"
+
+
+def _final_round() -> int:
+    """The round whose policy the build ends with (the fresh round's, where there is one)."""
+    return FLAGS.rounds + int(FLAGS.fresh_round)
 
 
 def _schedule(name: str, hi: float = float("inf")) -> list[float]:
@@ -172,10 +206,39 @@ def plan(w: Path) -> list[Stage]:
              f"--export_param_dtype={FLAGS.param_dtype}", "--image_shift=2", "--log_every=500", "--ckpt_every=1000",
              f"--devices={FLAGS.train_devices}", f"--seed={FLAGS.seed}", *determinism]
     acc = {"held_out_token_acc": r'"val_token_acc": (\[[^\]]*\])', "held_out_decisive": r'"val_decisive": (\[[^\]]*\])', **TIME}
-    stages = [Stage("demos", ["collect_demos", *collect, *labels, *determinism, f"--episodes_per_task={FLAGS.demo_episodes}",
-                              f"--num_envs={FLAGS.num_envs}", f"--action_noise={FLAGS.action_noise}", "--wrist",
-                              f"--image_size={FLAGS.image_size}", f"--out={w / 'demos'}"], w / "demos",
-                    {"kept": r"kept (\d+/\d+)", **TIME}),
+    from envs import tasks as tasks_lib  # noqa: PLC0415
+
+    n_tasks = len(tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None))
+
+    def demonstrations(name: str, out: Path, *extra: str) -> Stage:
+        return Stage(name, ["collect_demos", *collect, *labels, *extra, *determinism,
+                            f"--episodes_per_task={FLAGS.demo_episodes}", f"--num_envs={FLAGS.num_envs}",
+                            f"--action_noise={FLAGS.action_noise}", "--wrist", f"--image_size={FLAGS.image_size}",
+                            f"--out={out}"], out, {"kept": r"kept (\d+/\d+)", **TIME})
+
+    def dagger(r: int, beta: float, *extra: str) -> Stage:  # round r: policy r - 1 drives (the expert too, by beta)
+        out = w / f"dagger{r}"
+        return Stage(f"dagger{r}", ["collect_demos", *collect, *labels, *extra, *determinism,
+                                    f"--policy={_policy(w, r - 1)}", f"--beta={beta}",
+                                    f"--episodes_per_task={FLAGS.dagger_episodes}", f"--first_episode={100000 * r}",
+                                    f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={out}"], out,
+                     {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of", **TIME})
+
+    def fine_tune(r: int, data: list[str], *extra: str) -> Stage:  # policy r from policy r - 1
+        return Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
+                                   f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
+                                   f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
+                                   f"--label_sigma_bins={_sigma(r):g}", *extra,
+                                   f"--export={_policy(w, r)}"], _policy(w, r), acc)
+
+    def evaluation(name: str, policy: Path, out: Path) -> Stage:
+        return Stage(name, ["evaluate", "--method=ar", f"--checkpoint={policy}", *scope,
+                            *(["--deterministic"] if FLAGS.deterministic else []),
+                            f"--episodes={FLAGS.eval_episodes}", f"--num_envs={FLAGS.num_envs}", f"--out={out}"], out,
+                     {**{f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")}, **TIME},
+                     expected_episodes=n_tasks * FLAGS.eval_episodes)
+
+    stages = [demonstrations("demos", w / "demos"),
               Stage("train0", ["train", "--model=vla", f"--demos={w / 'demos'}", f"--out={w / 'run0'}",
                                f"--steps={FLAGS.steps}", f"--lr={FLAGS.lr}", f"--warmup_steps={min(300, FLAGS.steps // 4)}", *model,
                                f"--label_sigma_bins={_sigma(0):g}",
@@ -190,28 +253,17 @@ def plan(w: Path) -> list[Stage]:
         data.append(str(w / f"dagger{r}"))
         adapt = [f"--weights_from={w / f'dagger{r - 1}'}", "--keep_total"] if FLAGS.adapt_weights and r > 1 else []
         drawn = [f"--weights_from={w / f'dagger{r}'}"] if FLAGS.adapt_weights and _beta(r) == 0 else []
-        stages.append(Stage(f"dagger{r}", ["collect_demos", *collect, *labels, *adapt, *determinism,
-                                           f"--policy={_policy(w, r - 1)}",
-                                           f"--beta={_beta(r)}", f"--episodes_per_task={FLAGS.dagger_episodes}",
-                                           f"--first_episode={100000 * r}", f"--num_envs={FLAGS.num_envs}",
-                                           "--action_noise=0", f"--out={w / f'dagger{r}'}"], w / f"dagger{r}",
-                            {"policy_success": r"policy success ([\d.]+%)", "agreement": r"on ([\d.]+%) of", **TIME}))
-        stages.append(Stage(f"train{r}", ["train", "--model=vla", f"--demos={','.join(data)}", f"--out={w / f'run{r}'}",
-                                          f"--init={_policy(w, r - 1)}", f"--steps={FLAGS.dagger_steps}",
-                                          f"--lr={FLAGS.lr / 2}", f"--warmup_steps={min(200, FLAGS.dagger_steps // 4)}", *model,
-                                          f"--label_sigma_bins={_sigma(r):g}", *drawn,
-                                          f"--export={_policy(w, r)}"], _policy(w, r), acc))
-    final = _policy(w, FLAGS.rounds)
-    from envs import tasks as tasks_lib  # noqa: PLC0415
-
-    n_tasks = len(tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None))
+        stages += [dagger(r, _beta(r), *adapt), fine_tune(r, data, *drawn)]
     if "eval" not in FLAGS.skip:
-        stages.append(Stage("eval", ["evaluate", "--method=ar", f"--checkpoint={final}", *scope,
-                                     *(["--deterministic"] if FLAGS.deterministic else []),
-                                     f"--episodes={FLAGS.eval_episodes}", f"--num_envs={FLAGS.num_envs}",
-                                     f"--out={w / 'eval_ar.json'}"], w / "eval_ar.json",
-                            {**{f"success_{s}": rf"\n{s}\s+\d+\s+([\d.]+)" for s in ("spatial", "object", "goal", "long")}, **TIME},
-                            expected_episodes=n_tasks * FLAGS.eval_episodes))
+        stages.append(evaluation("eval", _policy(w, FLAGS.rounds), w / "eval_ar.json"))
+    if FLAGS.fresh_round:  # one round more, on fresh data weighted by that evaluation's failures
+        r, weighed = FLAGS.rounds + 1, [f"--weights_from={w / 'eval_ar.json'}", "--keep_total"]
+        fresh = [str(w / "fresh_demos"), str(w / f"dagger{r}")]
+        stages += [demonstrations("fresh_demos", w / "fresh_demos", *weighed, f"--first_episode={100000 * r + 50000}"),
+                   dagger(r, 0.0, *weighed), fine_tune(r, fresh),
+                   evaluation("fresh_eval", _policy(w, r), w / "eval_ar_fresh.json")]
+        data += fresh
+    final = _policy(w, _final_round())
     rollouts = w / "target_rollouts"
     datastore_from_rollouts = FLAGS.datastore_source == "rollouts" and "datastore" not in FLAGS.skip
     if FLAGS.rollout_episodes and ("drafter" not in FLAGS.skip or datastore_from_rollouts):
@@ -220,7 +272,7 @@ def plan(w: Path) -> list[Stage]:
         stages.append(Stage("target_rollouts", ["collect_demos", *scope, *labels, *determinism, f"--policy={final}",
                                                 "--beta=0",
                                                 f"--episodes_per_task={FLAGS.rollout_episodes}",
-                                                f"--first_episode={100000 * (FLAGS.rounds + 1)}",
+                                                f"--first_episode={100000 * (_final_round() + 1)}",
                                                 f"--num_envs={FLAGS.num_envs}", "--action_noise=0", f"--out={rollouts}"],
                             rollouts, {"policy_success": r"policy success ([\d.]+%)", **TIME}))
     if "drafter" not in FLAGS.skip:
@@ -271,6 +323,8 @@ def _settings() -> dict:
         out["adapt_weights"] = True
     if FLAGS.expert_rot_gain is not None:  # likewise
         out["expert_rot_gain"] = FLAGS.expert_rot_gain
+    if FLAGS.fresh_round:  # likewise
+        out["fresh_round"] = True
     if FLAGS.param_dtype != "float32":  # likewise
         out["param_dtype"] = FLAGS.param_dtype
     return out
@@ -319,7 +373,7 @@ def run_stage(stage: Stage, log_path: Path, env: dict, console: Console) -> dict
 def install(w: Path) -> None:
     """Copies the final target, drafter and datastore over checkpoints/ (each replaced whole,
     via a temporary sibling, so an interrupted copy never leaves a half checkpoint)."""
-    pairs = [(_policy(w, FLAGS.rounds), ROOT / "checkpoints" / "vla"), (w / "drafter", ROOT / "checkpoints" / "drafter"),
+    pairs = [(_policy(w, _final_round()), ROOT / "checkpoints" / "vla"), (w / "drafter", ROOT / "checkpoints" / "drafter"),
              (w / "datastore", ROOT / "checkpoints" / "datastore")]
     for src, dst in pairs:
         if not src.exists():
@@ -377,12 +431,15 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if FLAGS.start and not (Path(FLAGS.start) / "0").is_dir():
         raise app.UsageError(f"--start {FLAGS.start}: no policy checkpoint there")
+    if FLAGS.fresh_round and "eval" in FLAGS.skip:
+        raise app.UsageError("--fresh_round weighs its collections by the evaluation's failures: drop eval from --skip")
     if FLAGS.install and FLAGS.skip:
         raise app.UsageError("--install needs every stage (drop --skip)")
     w = Path(FLAGS.work).absolute()
     if FLAGS.dry_run:
-        for stage in plan(w):
-            status = "done" if stage.done() else "to run"
+        stages = plan(w)
+        for stage, runs in zip(stages, to_run(stages)):
+            status = "to run" if runs else "done" if stage.done() else "not needed: every stage that reads it is done"
             print(f"{stage.name} ({status}): python -m experiments.{' '.join(stage.args)}")
         return
     (w / "logs").mkdir(parents=True, exist_ok=True)
@@ -397,9 +454,9 @@ def main(argv):
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/{task.total} stages"),
                   TimeElapsedColumn(), console=console) as bar:
         job = bar.add_task("building", total=len(stages))
-        for stage in stages:
-            if stage.done():
-                bar.update(job, advance=1, description=f"{stage.name}: done")
+        for stage, runs in zip(stages, to_run(stages)):
+            if not runs:
+                bar.update(job, advance=1, description=f"{stage.name}: {'done' if stage.done() else 'not needed'}")
                 continue
             bar.update(job, description=f"{stage.name}: running")
             t0 = time.perf_counter()

@@ -30,7 +30,7 @@
 # first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results.tar.part-* (15 MiB
 # parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
 # there yet is named and skipped), each build_target work folder's finished stack (build.json,
-# logs, the latest complete vla*, drafter, datastore, eval_ar.json) and every small result file
+# logs, the latest complete vla*, drafter, datastore, eval_ar*.json) and every small result file
 # (*.json, *.json.gz, *.log, *.png, *.txt under 2 MB, outside datasets and checkpoints), so a
 # measurement's output comes back unnamed; with no PATH and no build, everything.
 # JAX's compilation cache persists in $GPU_JOB_WORK/jax_cache (GPU_JOB_WORK: /tmp/gpu_job)
@@ -80,13 +80,13 @@ pack() {  # the PATHs given and a build's finished stack; with neither, everythi
     b=${b%/build.json}; items+=("$b/build.json" "$b/logs")
     v=$(cd "$d" && for x in $(ls -d "$b"/vla[0-9]* 2>/dev/null | sort -rV); do [ -d "$x/0" ] && echo "$x" && break; done)
     [ -n "$v" ] && items+=("$v")  # the newest complete policy
-    for f in drafter datastore eval_ar.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
+    for f in drafter datastore eval_ar.json eval_ar_fresh.json; do [ -e "$d/$b/$f" ] && items+=("$b/$f"); done
   done
   if [ -z "$builds" ] && [ $# -eq 0 ]; then
     items=(.)
   else  # and every small result file (JSON, logs, plots) outside datasets and checkpoints, named or not
     local small; small=$(cd "$d" && find . \( -name 'vla[0-9]*' -o -name 'run[0-9]*' -o -name drafter -o -name datastore \
-      -o -name demos -o -name 'dagger[0-9]*' -o -name target_rollouts -o -name 'jax_cache*' \) -prune -o -type f \
+      -o -name demos -o -name fresh_demos -o -name 'dagger[0-9]*' -o -name target_rollouts -o -name 'jax_cache*' \) -prune -o -type f \
       \( -name '*.json' -o -name '*.json.gz' -o -name '*.log' -o -name '*.png' -o -name '*.txt' \) -size -2M -print)
     for f in $small; do items+=("${f#./}"); done
   fi

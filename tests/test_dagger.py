@@ -98,6 +98,35 @@ def test_build_target_refuses_a_work_dir_built_with_other_settings(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["build.json", "logs"]  # no stage started
 
 
+def test_build_target_resumed_elsewhere_runs_only_what_follows_what_came_back(tmp_path):
+    """A build resumed from what a lost machine's last poll brings back (the newest policy and
+    the evaluation, no dataset) reruns a stage whose output is gone only where a stage still to
+    run reads it: with the fresh round and no drafter, nothing before the fresh round; with the
+    drafter, which reads every dataset, every collection and the policies that drove them."""
+    root = Path(__file__).resolve().parents[1]
+    w = tmp_path / "w"
+    (w / "vla2" / "0").mkdir(parents=True)
+    (w / "eval_ar.json").write_text(json.dumps({"episodes": {"pick_red_block": [{}], "left_block_plate": [{}]}}))
+    base = [sys.executable, "-m", "experiments.build_target", f"--work={w}", "--dry_run", "--rounds=2",
+            "--tasks=pick_red_block,left_block_plate", "--eval_episodes=1"]
+
+    def statuses(*flags):
+        r = subprocess.run([*base, *flags], capture_output=True, text=True, cwd=root, timeout=300)
+        assert r.returncode == 0, r.stderr[-3000:]
+        return {line.split()[0]: line.split(" (", 1)[1].split(")")[0].split(":")[0]
+                for line in r.stdout.splitlines() if ": python -m " in line}
+
+    got = statuses("--fresh_round", "--skip=drafter,datastore,calibration")
+    assert got == {**dict.fromkeys(["demos", "train0", "dagger1", "train1", "dagger2"], "not needed"),
+                   "train2": "done", "eval": "done",
+                   **dict.fromkeys(["fresh_demos", "dagger3", "train3", "fresh_eval"], "to run")}, got
+    got = statuses("--skip=datastore,calibration")
+    assert got == {**dict.fromkeys(["demos", "train0", "dagger1", "train1", "dagger2"], "to run"),
+                   "train2": "done", "eval": "done", "target_rollouts": "to run", "drafter": "to run"}, got
+    r = subprocess.run([*base, "--fresh_round", "--skip=eval"], capture_output=True, text=True, cwd=root, timeout=300)
+    assert r.returncode != 0 and "--fresh_round weighs its collections by the evaluation's failures" in r.stderr
+
+
 def test_build_target_refuses_a_batch_its_devices_cannot_split(tmp_path):
     """By default every training stage runs data parallel over all local devices (here two
     forced CPU devices): a minibatch they cannot split evenly is refused before any stage runs."""
@@ -118,11 +147,12 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     r = subprocess.run([sys.executable, "-m", "experiments.build_target", f"--work={tmp_path / 'w'}", "--dry_run",
                         f"--start={start}", "--steps=0", "--rounds=2", "--beta=0.5,0", "--suite_weights=long:2",
                         "--tasks=pick_red_block,left_block_plate", "--label_sigma_bins=1",
-                        "--rollout_episodes=10", "--datastore_source=rollouts", "--adapt_weights", "--nodeterministic"],
-                       capture_output=True, text=True, cwd=root, timeout=300)
+                        "--rollout_episodes=10", "--datastore_source=rollouts", "--adapt_weights", "--nodeterministic",
+                        "--fresh_round"], capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode == 0, r.stderr[-3000:]
     stages = [line.split(": python -m experiments.", 1) for line in r.stdout.splitlines() if ": python -m " in line]
     assert [s.split()[0] for s, _ in stages] == ["demos", "dagger1", "train1", "dagger2", "train2", "eval",
+                                                 "fresh_demos", "dagger3", "train3", "fresh_eval",
                                                  "target_rollouts", "drafter", "datastore", "calibration"]
     assert not (tmp_path / "w").exists()  # a dry run writes nothing
     by_module = {}
@@ -144,7 +174,17 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     # Fine-tuning is drawn by the failures of the policy it fine-tunes, where that policy drove alone (beta 0).
     assert "--weights_from" not in rounds["train1"] and f"--weights_from={tmp_path / 'w' / 'dagger2'}" in rounds["train2"]
     # every training and collection stage
+    # The fresh round: the last policy drives alone, both collections weighed by the evaluation, trained on them alone.
+    w = tmp_path / "w"
+    for name in ("fresh_demos", "dagger3"):
+        assert f"--weights_from={w / 'eval_ar.json'} --keep_total" in rounds[name], rounds[name]
+    assert f"--policy={w / 'vla2'} --beta=0.0" in rounds["dagger3"]
+    assert f"--demos={w / 'fresh_demos'},{w / 'dagger3'} " in rounds["train3"] and "--weights_from" not in rounds["train3"]
+    assert f"--checkpoint={w / 'vla3'}" in rounds["fresh_eval"] and f"--out={w / 'eval_ar_fresh.json'}" in rounds["fresh_eval"]
+    assert all(f"--checkpoint={w / 'vla3'}" in rounds[s] for s in ("datastore", "calibration"))
+    assert f"--target={w / 'vla3'}" in rounds["drafter"] and f"--policy={w / 'vla3'}" in rounds["target_rollouts"]
     assert all("--deterministic=false" in rounds[s] for s in ("demos", "dagger1", "train1", "dagger2", "train2",
+                                                              "fresh_demos", "dagger3", "train3",
                                                               "target_rollouts", "drafter"))
     assert "--deterministic" not in rounds["eval"]  # evaluate's default is off (and --deterministic turns it on)
 

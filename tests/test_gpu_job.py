@@ -68,8 +68,10 @@ def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_
     (work / "out" / "gpu0").mkdir()
     (work / "out" / "gpu0" / "eval_ar.json").write_text("{}")  # a result nobody named
     (work / "out" / "gpu0" / "trace.json").write_bytes(b" " * (3 << 20))  # too large to come back unnamed
-    (build / "demos").mkdir()
-    (build / "demos" / "meta.json").write_text("{}")  # a dataset's
+    (build / "eval_ar_fresh.json").write_bytes(b" " * (3 << 20))  # large, but the build's: it comes back
+    for dataset in ("demos", "fresh_demos"):
+        (build / dataset).mkdir()
+        (build / dataset / "meta.json").write_text("{}")  # a dataset's
     (work / "pid").write_text("999999999")  # a job that has ended
     fake = tmp_path / "bin"
     fake.mkdir()
@@ -84,5 +86,6 @@ def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_
     parts = sorted((tmp_path / "back").glob("results.tar.part-*"))
     with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts))) as tar:
         names = {n.rstrip("/") for n in tar.getnames()}
-    assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params", "job.log", "gpu0/eval_ar.json"} <= names
-    assert not any(n.startswith(("b/vla1", "b/vla3", "b/demos", "gpu0/trace")) for n in names)
+    assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params", "b/eval_ar_fresh.json", "job.log",
+            "gpu0/eval_ar.json"} <= names
+    assert not any(n.startswith(("b/vla1", "b/vla3", "b/demos", "b/fresh_demos", "gpu0/trace")) for n in names)
