@@ -161,6 +161,15 @@ def _place(mesh, tree):
     return jax.device_put(tree) if mesh is None else sharding.replicate(mesh, tree)
 
 
+def _placed(*trees):
+    """`trees` once their copies to the devices are complete, the wait timed as the phase
+    "table placed" (the first step would wait for them anyway): a large aggregate's copy
+    would otherwise hide in the setup's or the first step's seconds."""
+    jax.block_until_ready(trees)
+    PHASES.lap("table placed")
+    return trees
+
+
 def _first(tree):
     """A replicated tree's copy on the first device (for the single-device evaluation)."""
     return jax.device_put(tree, jax.local_devices()[0])
@@ -197,8 +206,9 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
         print(f"resumed from step {int(state.step)}")
     n_params = sum(x.size for x in jax.tree.leaves(state.params))
     print(f"VLA {n_params / 1e6:.2f}M parameters, prompt {model_cfg.prompt_len} tokens")
+    PHASES.lap("state")
     mesh = _mesh()
-    table, val_table, state = _place(mesh, host), jax.device_put(val_host), _place(mesh, state)
+    table, val_table, state = _placed(_place(mesh, host), jax.device_put(val_host), _place(mesh, state))
     run_cfg = dataclasses.replace(model_cfg, dtype=FLAGS.compute_dtype)
     step = training.make_train_step(run_cfg, cfg, tok, mesh)
     eval_fn = training.make_eval_fn(model_cfg, tok, min(1024, val_table.size), cfg)
@@ -246,11 +256,12 @@ def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, 
             raise app.UsageError(f"{out} holds a drafter run for another target; use another --out")
         print(f"resumed from step {int(state.step)}")
     print(f"drafter {sum(x.size for x in jax.tree.leaves(state.params)) / 1e6:.2f}M parameters, target {fp}")
+    PHASES.lap("state")
     mesh = _mesh()
+    state, table_m, tparams_m, tokens_m = _placed(*(_place(mesh, x) for x in (state, table, tparams, tokens)))
     step = training.make_drafter_step(model_cfg, cfg, mesh)
     eval_fn = training.make_drafter_eval(model_cfg, min(1024, val_table.size), cfg)
     eval_key = jax.random.PRNGKey(cfg.seed + 2)
-    state, table_m, tparams_m, tokens_m = (_place(mesh, x) for x in (state, table, tparams, tokens))
 
     def record(state, m, s):
         vloss, vm = eval_fn(_first(state.params), tparams, val_table, val_tokens, jax.random.fold_in(eval_key, s))
