@@ -147,15 +147,17 @@ class Stage:
 
 def to_run(stages: list[Stage]) -> list[bool]:
     """Which stages still run: each one not done whose output is still wanted, by a stage that
-    still runs or, where no stage reads it, as one of the build's results. A stage whose output
-    is gone but whose every reader is done is not rerun: a build resumed on another machine
-    from what a lost one's last poll brought back (build.json, the newest policy, the
-    evaluation) runs only what comes after them, where it needs no earlier dataset."""
+    still runs or, for a stage no other reads and that is no collection, as one of the build's
+    results (a dataset is only ever some stage's input). A stage whose output is gone but whose
+    every reader is done is not rerun: a build resumed on another machine from what a lost
+    one's last poll brought back (build.json, the newest policy, the evaluation) runs only what
+    comes after them, where it needs no earlier dataset."""
     run = [False] * len(stages)
     for i in reversed(range(len(stages))):
         if not stages[i].done():
             readers = [j for j in range(i + 1, len(stages)) if stages[j].reads(stages[i])]
-            run[i] = not readers or any(run[j] for j in readers)
+            result = not readers and stages[i].args[0] != "collect_demos"
+            run[i] = result or any(run[j] for j in readers)
     return run
 
 

@@ -111,7 +111,7 @@ def test_build_target_resumed_elsewhere_runs_only_what_follows_what_came_back(tm
             "--tasks=pick_red_block,left_block_plate", "--eval_episodes=1"]
 
     def statuses(*flags):
-        r = subprocess.run([*base, *flags], capture_output=True, text=True, cwd=root, timeout=300)
+        r = subprocess.run([*base, *flags], capture_output=True, text=True, cwd=root, timeout=300)  # the last --work counts
         assert r.returncode == 0, r.stderr[-3000:]
         return {line.split()[0]: line.split(" (", 1)[1].split(")")[0].split(":")[0]
                 for line in r.stdout.splitlines() if ": python -m " in line}
@@ -123,6 +123,11 @@ def test_build_target_resumed_elsewhere_runs_only_what_follows_what_came_back(tm
     got = statuses("--skip=datastore,calibration")
     assert got == {**dict.fromkeys(["demos", "train0", "dagger1", "train1", "dagger2"], "to run"),
                    "train2": "done", "eval": "done", "target_rollouts": "to run", "drafter": "to run"}, got
+    # Continuing a policy with the fresh round alone: no stage reads the demonstrations, so none are collected.
+    got = statuses(f"--work={tmp_path / 'c'}", f"--start={w / 'vla2'}", "--steps=0", "--rounds=0", "--fresh_round",
+                   "--skip=drafter,datastore,calibration")
+    assert got == {"demos": "not needed", "eval": "to run",
+                   **dict.fromkeys(["fresh_demos", "dagger1", "train1", "fresh_eval"], "to run")}, got
     r = subprocess.run([*base, "--fresh_round", "--skip=eval"], capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode != 0 and "--fresh_round weighs its collections by the evaluation's failures" in r.stderr
 
