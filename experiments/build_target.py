@@ -13,11 +13,13 @@ are published atomically by those commands), so rerunning the same command after
 interruption skips what is done and resumes the stage that was cut off (training resumes
 from its last orbax checkpoint); a stage whose output is gone runs again only where a stage
 still to run reads it, so a build moved to another machine with its newest policy and
-evaluation resumes after them. --fresh_round adds one round after the evaluation on fresh,
-failure-weighted data alone (docs/target.md). --work/build.json records the settings (a rerun with
-other settings is refused) and, per stage, its wall time and the figures it printed (DAgger
-success of the policy that drove, held-out token accuracy and decisiveness (the share of tokens
-whose greedy bin has probability > 0.5), evaluation success, a collection's time split).
+evaluation resumes after them where nothing after them reads an earlier dataset.
+--fresh_round adds one round after the evaluation on fresh, failure-weighted data, drawn
+--fresh_weight times as often as the aggregate's (docs/target.md). --work/build.json records
+the settings (a rerun with other settings is refused) and, per stage, its wall time and the
+figures it printed (DAgger success of the policy that drove, held-out token accuracy and
+decisiveness (the share of tokens whose greedy bin has probability > 0.5), evaluation
+success, a collection's time split).
 A persistent JAX compilation cache under --work makes recompiles of a resumed or repeated
 stage cheap.
 """
@@ -61,14 +63,18 @@ flags.DEFINE_bool("adapt_weights", False, "Follow where the policy fails: from t
                   "every round runs one compiled program), and each round whose policy drove alone (beta 0) "
                   "fine-tunes on the aggregate drawn by that round's failures (train --weights_from: the policy it "
                   "fine-tunes is the one that failed them).")
-flags.DEFINE_bool("fresh_round", False, "After the evaluation, one DAgger round more on fresh data only: the final "
+flags.DEFINE_bool("fresh_round", False, "After the evaluation, one DAgger round more on fresh data: the final "
                   "policy drives alone (beta 0) and the expert demonstrates afresh, both collections shared out by that "
                   "evaluation's failures (collect_demos --weights_from=eval_ar.json --keep_total: up to 4x, on top of "
                   "--suite_weights, at the totals of the build's own collections, so their programs are reused), the "
-                  "policy fine-tuned on those two datasets alone (--dagger_steps, the last label std) and evaluated "
-                  "again (eval_ar_fresh.json); it is the build's final policy. Needs the evaluation (not in --skip). "
-                  "Its inputs are the last policy and eval_ar.json, which a lost machine's last poll brings back: a "
-                  "build resumed elsewhere from those two runs only the fresh round's stages.")
+                  "policy fine-tuned on them as --fresh_weight says (--dagger_steps, the last label std) and evaluated "
+                  "again (eval_ar_fresh.json); it is the build's final policy. Needs the evaluation (not in --skip).")
+flags.DEFINE_integer("fresh_weight", 4, "With --fresh_round: the fresh round fine-tunes on the whole aggregate and "
+                     "the two fresh datasets, each fresh step drawn this many times as often as an earlier round's "
+                     "(train --demo_weights; at the default sizes 4 gives the fresh data ~46% of the draws), so the "
+                     "round adds where the policy fails without forgetting the rest. 0: on the two fresh datasets "
+                     "alone; its inputs are then only the last policy and eval_ar.json, which a lost machine's last "
+                     "poll brings back, so a build resumed elsewhere from those two runs only the fresh stages.")
 flags.DEFINE_list("beta", ["0.5", "0"], "DAgger: probability of executing the expert's action per step, one value per "
                   "round (the last one repeats), e.g. 0.5,0.25,0: the first rounds stay near the expert's paths, "
                   "the last visits the policy's own states.")
@@ -261,8 +267,10 @@ def plan(w: Path) -> list[Stage]:
     if FLAGS.fresh_round:  # one round more, on fresh data weighted by that evaluation's failures
         r, weighed = FLAGS.rounds + 1, [f"--weights_from={w / 'eval_ar.json'}", "--keep_total"]
         fresh = [str(w / "fresh_demos"), str(w / f"dagger{r}")]
+        drawn = [f"--demo_weights={','.join(['1'] * len(data) + [str(FLAGS.fresh_weight)] * len(fresh))}"]
         stages += [demonstrations("fresh_demos", w / "fresh_demos", *weighed, f"--first_episode={100000 * r + 50000}"),
-                   dagger(r, 0.0, *weighed), fine_tune(r, fresh),
+                   dagger(r, 0.0, *weighed),
+                   fine_tune(r, data + fresh, *drawn) if FLAGS.fresh_weight else fine_tune(r, fresh),
                    evaluation("fresh_eval", _policy(w, r), w / "eval_ar_fresh.json")]
         data += fresh
     final = _policy(w, _final_round())
@@ -327,6 +335,8 @@ def _settings() -> dict:
         out["expert_rot_gain"] = FLAGS.expert_rot_gain
     if FLAGS.fresh_round:  # likewise
         out["fresh_round"] = True
+        if FLAGS.fresh_weight:  # likewise: a build with the fresh round on its data alone records none
+            out["fresh_weight"] = FLAGS.fresh_weight
     if FLAGS.param_dtype != "float32":  # likewise
         out["param_dtype"] = FLAGS.param_dtype
     return out
@@ -338,7 +348,8 @@ def _load_state(path: Path) -> dict:
     state = json.loads(path.read_text())
     if state["settings"] != _settings():
         diff = {k: (state["settings"].get(k), v) for k, v in _settings().items() if state["settings"].get(k) != v}
-        raise app.UsageError(f"{path.parent} was built with other settings (was, now): {diff}; use another --work")
+        raise app.UsageError(f"{path.parent} was built with other settings (was, now): {diff}; rerun with the "
+                             f"settings it was built with, or use another --work")
     return state
 
 
@@ -413,6 +424,9 @@ def main(argv):
         raise app.UsageError(f"--expert_rot_gain must be > 0, got {FLAGS.expert_rot_gain}")
     if FLAGS.rounds < 0:
         raise app.UsageError(f"--rounds must be >= 0, got {FLAGS.rounds}")
+    if FLAGS.fresh_weight < 0:
+        raise app.UsageError(f"--fresh_weight must be >= 0 (0: the fresh round trains on its own data alone), got "
+                             f"{FLAGS.fresh_weight}")
     if FLAGS.train_devices < 0:
         raise app.UsageError(f"--train_devices must be >= 0 (0: all local devices), got {FLAGS.train_devices}")
     if not FLAGS.dry_run:

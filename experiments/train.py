@@ -13,6 +13,9 @@ from a policy checkpoint's parameters and tokenizer (fresh optimizer and schedul
 to how often that policy failed its task (`envs.tasks.failure_weights`, up to 4x; others 1):
 a round's fine-tuning then weighs what its policy gets wrong, not the aggregate's task mix.
 
+--demo_weights=1,1,3 draws each step of the third dataset three times as often as the others'
+(a round's newest data against the aggregate); the share of the draws each dataset gets is printed.
+
 --devices=N trains data parallel over N local devices (0: all): the state and the step
 table are replicated on each, every minibatch is split over them (`heisd_jax.harness.training`).
 
@@ -54,6 +57,9 @@ flags.DEFINE_list("demos", ["data/demos"], "Demonstration datasets (experiments.
 flags.DEFINE_string("weights_from", "", "A DAgger dataset (collect_demos --policy) or an evaluation's results JSON: "
                     "each training step is drawn in proportion to how often that policy failed its task "
                     "(envs.tasks.failure_weights: 1 + 10 x failure rate, up to 4x; other tasks 1). Empty: uniform.")
+flags.DEFINE_list("demo_weights", [], "One positive integer per --demos dataset: each of its steps is drawn that many "
+                  "times as often (on top of --weights_from's task weights), e.g. 1,1,3,3 draws the last two datasets' "
+                  "steps three times as often as the first two's. Empty: every dataset 1.")
 flags.DEFINE_string("init", "", "--model=vla: start from this policy checkpoint's parameters and tokenizer.")
 cli.existing_dir("init", "policy checkpoint")
 flags.DEFINE_enum("compute_dtype", "bfloat16", ["float32", "bfloat16"], "Activation dtype while training (parameters "
@@ -122,20 +128,39 @@ def _loop(out: Path, mngr, state, meta: dict, cfg, step_fn, record_fn):
     return state
 
 
+def _demo_weights() -> list[int]:
+    """--demo_weights as integers, one per --demos dataset (all 1 where not given); UsageError
+    naming the flag otherwise."""
+    if not FLAGS.demo_weights:
+        return [1] * len(FLAGS.demos)
+    text = ",".join(FLAGS.demo_weights)
+    if len(FLAGS.demo_weights) != len(FLAGS.demos) or not all(v.strip().isdigit() and int(v) >= 1
+                                                              for v in FLAGS.demo_weights):
+        raise app.UsageError(f"--demo_weights: expected one positive integer per --demos dataset "
+                             f"({len(FLAGS.demos)}), got {text}")
+    return [int(v) for v in FLAGS.demo_weights]
+
+
 def _tables(task_weights: dict[str, int]):
     """(train, validation) step tables on the host, and the (image size, views) of the data:
-    the training episodes of every --demos dataset in one table, drawn by `task_weights`
-    (`data.load_step_table`), the first dataset's held-out episodes (its training episodes
-    where it holds none out) for validation, drawn uniformly."""
+    the training episodes of every --demos dataset in one table, drawn by `task_weights` and
+    --demo_weights (`data.load_step_table`), the first dataset's held-out episodes (its
+    training episodes where it holds none out) for validation, drawn uniformly."""
     splits = [data.random_episode_split(path, FLAGS.holdout) for path in FLAGS.demos]
-    for path, (train_eps, val_eps) in zip(FLAGS.demos, splits):
-        print(f"{path}: {len(train_eps)} training episodes, {len(val_eps)} held out")
     t0 = time.perf_counter()
     try:
         host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)],
-                                    task_weights)
+                                    task_weights, _demo_weights())
     except ValueError as e:
         raise app.UsageError(f"--demos: {e}") from e
+    row = 0
+    for path, (train_eps, val_eps) in zip(FLAGS.demos, splits):
+        ds = demos.DemoDataset(path)
+        rows = sum(ds.episodes[i]["length"] for i in train_eps)
+        share = data.draw_share(host, slice(row, row + rows))
+        print(f"{path}: {len(train_eps)} training episodes ({rows} steps, {100 * share:.1f}% of the draws), "
+              f"{len(val_eps)} held out")
+        row += rows
     first_train, first_val = splits[0]
     val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
     print(f"loaded {host.size} training and {val_host.size} held-out steps in {time.perf_counter() - t0:.1f}s")
@@ -222,13 +247,15 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
                 "val_decisive": [round(float(a), 4) for a in vm["decisive"]]}
 
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-                                                      "task_weights": task_weights, "init": FLAGS.init,
+                                                      "task_weights": task_weights, "demo_weights": _demo_weights(),
+                                                      "init": FLAGS.init,
                                                       "compute_dtype": FLAGS.compute_dtype},
                                text_vocab=language.VOCAB)
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
     if FLAGS.export:
         checkpoint.save_policy(FLAGS.export, _first(state.params), model_cfg, tok,
-                               extra={k: meta[k] for k in ("train", "demos", "task_weights", "init", "compute_dtype")},
+                               extra={k: meta[k] for k in ("train", "demos", "task_weights", "demo_weights", "init",
+                                                           "compute_dtype")},
                                text_vocab=language.VOCAB, param_dtype=FLAGS.export_param_dtype)
         print(f"policy checkpoint: {FLAGS.export}")
         PHASES.lap("export")
@@ -249,7 +276,7 @@ def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, 
     state = training.init_drafter_state(model_cfg, cfg)
     meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
             "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-            "task_weights": task_weights}
+            "task_weights": task_weights, "demo_weights": _demo_weights()}
     if mngr.latest_step() is not None:
         state, old = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
         if old.get("target_fingerprint") != fp:
@@ -283,6 +310,7 @@ def main(argv):
         task_weights = tasks_lib.parse_suite_weights(cli.failure_weights(FLAGS.weights_from)) if FLAGS.weights_from else {}
         for path in FLAGS.demos:
             demos.DemoDataset(path)
+        _demo_weights()
         for name in ("init",) if FLAGS.model == "vla" else ("target",):
             path = getattr(FLAGS, name)
             if path and not Path(path).is_dir():

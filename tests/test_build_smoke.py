@@ -32,6 +32,9 @@ def test_build_from_nothing_smoke_run_and_resume(tmp_path):
     # a training stage splits its seconds too, the imports through the export
     assert all(part in stages["train0"]["time"] for part in ("start", "load", "first step", "steps", "export"))
     assert len(json.loads(stages["train1"]["held_out_decisive"])) == 7
+    # The fresh round trains on the aggregate, its own two datasets drawn 4x as often.
+    log = (work / "logs" / "train2.log").read_text()
+    assert all(f"{work / d}: " in log for d in ("demos", "dagger1", "fresh_demos", "dagger2")) and "% of the draws" in log
     assert (work / "vla2" / "0").is_dir() and (work / "eval_ar.json").exists() and (work / "eval_ar_fresh.json").exists()
     for gone in ("demos", "dagger1", "fresh_demos", "dagger2", "vla0", "vla1", "run0", "run1", "run2"):
         shutil.rmtree(work / gone)

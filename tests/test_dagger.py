@@ -116,8 +116,13 @@ def test_build_target_resumed_elsewhere_runs_only_what_follows_what_came_back(tm
         return {line.split()[0]: line.split(" (", 1)[1].split(")")[0].split(":")[0]
                 for line in r.stdout.splitlines() if ": python -m " in line}
 
-    got = statuses("--fresh_round", "--skip=drafter,datastore,calibration")
+    got = statuses("--fresh_round", "--fresh_weight=0", "--skip=drafter,datastore,calibration")
     assert got == {**dict.fromkeys(["demos", "train0", "dagger1", "train1", "dagger2"], "not needed"),
+                   "train2": "done", "eval": "done",
+                   **dict.fromkeys(["fresh_demos", "dagger3", "train3", "fresh_eval"], "to run")}, got
+    # By default the fresh round trains on the aggregate too, so the aggregate is collected again.
+    got = statuses("--fresh_round", "--skip=drafter,datastore,calibration")
+    assert got == {**dict.fromkeys(["demos", "train0", "dagger1", "train1", "dagger2"], "to run"),
                    "train2": "done", "eval": "done",
                    **dict.fromkeys(["fresh_demos", "dagger3", "train3", "fresh_eval"], "to run")}, got
     got = statuses("--skip=datastore,calibration")
@@ -125,7 +130,7 @@ def test_build_target_resumed_elsewhere_runs_only_what_follows_what_came_back(tm
                    "train2": "done", "eval": "done", "target_rollouts": "to run", "drafter": "to run"}, got
     # Continuing a policy with the fresh round alone: no stage reads the demonstrations, so none are collected.
     got = statuses(f"--work={tmp_path / 'c'}", f"--start={w / 'vla2'}", "--steps=0", "--rounds=0", "--fresh_round",
-                   "--skip=drafter,datastore,calibration")
+                   "--fresh_weight=0", "--skip=drafter,datastore,calibration")
     assert got == {"demos": "not needed", "eval": "to run",
                    **dict.fromkeys(["fresh_demos", "dagger1", "train1", "fresh_eval"], "to run")}, got
     r = subprocess.run([*base, "--fresh_round", "--skip=eval"], capture_output=True, text=True, cwd=root, timeout=300)
@@ -179,12 +184,15 @@ def test_build_target_stages_pass_only_flags_their_commands_define(tmp_path):
     # Fine-tuning is drawn by the failures of the policy it fine-tunes, where that policy drove alone (beta 0).
     assert "--weights_from" not in rounds["train1"] and f"--weights_from={tmp_path / 'w' / 'dagger2'}" in rounds["train2"]
     # every training and collection stage
-    # The fresh round: the last policy drives alone, both collections weighed by the evaluation, trained on them alone.
+    # The fresh round: the last policy drives alone, both collections weighed by the evaluation; trained on the
+    # aggregate with the fresh data drawn --fresh_weight (default 4) times as often.
     w = tmp_path / "w"
     for name in ("fresh_demos", "dagger3"):
         assert f"--weights_from={w / 'eval_ar.json'} --keep_total" in rounds[name], rounds[name]
     assert f"--policy={w / 'vla2'} --beta=0.0" in rounds["dagger3"]
-    assert f"--demos={w / 'fresh_demos'},{w / 'dagger3'} " in rounds["train3"] and "--weights_from" not in rounds["train3"]
+    aggregate = ",".join(str(w / d) for d in ("demos", "dagger1", "dagger2", "fresh_demos", "dagger3"))
+    assert f"--demos={aggregate} " in rounds["train3"] and "--demo_weights=1,1,1,4,4 " in rounds["train3"]
+    assert "--weights_from" not in rounds["train3"]
     assert f"--checkpoint={w / 'vla3'}" in rounds["fresh_eval"] and f"--out={w / 'eval_ar_fresh.json'}" in rounds["fresh_eval"]
     assert all(f"--checkpoint={w / 'vla3'}" in rounds[s] for s in ("datastore", "calibration"))
     assert f"--target={w / 'vla3'}" in rounds["drafter"] and f"--policy={w / 'vla3'}" in rounds["target_rollouts"]
@@ -338,6 +346,21 @@ def test_build_target_label_smoothing_follows_its_schedule(tmp_path):
                         "--label_sigma_bins=2,-1"], capture_output=True, text=True, cwd=root, timeout=300)
     assert r.returncode != 0 and "--label_sigma_bins: each value must be >= 0, got 2,-1" in r.stderr, r.stderr[-3000:]
     assert not (tmp_path / "w").exists()
+
+
+def test_build_target_records_the_fresh_rounds_draw_only_where_it_trains_on_the_aggregate():
+    """build.json records fresh_weight only for a fresh round that trains on the aggregate: a
+    build whose fresh round trained on its own data alone (recorded before the flag existed)
+    resumes with --fresh_weight=0 and is refused under the default, which means other data."""
+    settings = ("import json, sys; from absl import flags; from experiments import build_target as b\n"
+                "for argv in sys.argv[1:]:\n"
+                "    flags.FLAGS.unparse_flags(); flags.FLAGS(['x', *argv.split()])\n"
+                "    s = b._settings(); print(json.dumps([s.get('fresh_round'), s.get('fresh_weight')]))")
+    r = subprocess.run([sys.executable, "-c", settings, "--fresh_round", "--fresh_round --fresh_weight=0",
+                        "--fresh_weight=3"], capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1],
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.splitlines() == ["[true, 4]", "[true, null]", "[null, null]"]
 
 
 def test_build_target_evaluates_deterministically_unless_told_not_to(tmp_path):

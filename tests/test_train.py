@@ -2,6 +2,9 @@
 
 import json
 import shutil
+import subprocess
+import sys
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -150,6 +153,36 @@ def test_task_weights_draw_each_step_in_proportion_to_its_tasks_weight(dataset, 
         np.testing.assert_array_equal(draw(jax.device_put(table), key, 64), jax.random.randint(key, (64,), 0, table.size))
     with pytest.raises(ValueError, match="positive integers"):
         data.load_step_table([(path, None)], {"pick_red_block": 0})
+
+
+def test_source_weights_multiply_task_weights_and_set_each_datasets_share_of_the_draws(dataset):
+    """`source_weights` scales every step of its dataset on top of its task's weight, and
+    `draw_share` gives each dataset's share of the draws (what experiments.train prints)."""
+    n = demos.DemoDataset(dataset).episodes[0]["length"]
+    sources = [(str(dataset), [0, 1]), (str(dataset), [2])]
+    table = data.load_step_table(sources, {"lift_blue_cylinder": 2}, source_weights=[1, 3])
+    np.testing.assert_array_equal(np.diff(table.cumulative_weight, prepend=0), np.repeat([2, 2, 6], n))
+    assert data.draw_share(table, slice(0, 2 * n)) == pytest.approx(4 / 10)
+    assert data.draw_share(table, slice(2 * n, 3 * n)) == pytest.approx(6 / 10)
+    draws = np.asarray(jax.jit(data.draw_rows, static_argnums=2)(jax.device_put(table), jax.random.PRNGKey(0), 20_000))
+    assert np.mean(draws >= 2 * n) == pytest.approx(0.6, abs=0.02)
+    uniform = data.load_step_table(sources, source_weights=[1, 1])  # all 1: the uniform draw, no weights stored
+    assert uniform.cumulative_weight is None and data.draw_share(uniform, slice(0, 2 * n)) == pytest.approx(2 / 3)
+    for bad in ([1], [1, 0], [1, 1.5]):
+        with pytest.raises(ValueError, match="one positive integer per dataset"):
+            data.load_step_table(sources, source_weights=bad)
+
+
+def test_train_refuses_demo_weights_that_do_not_match_its_datasets(dataset, tmp_path):
+    """A --demo_weights list of the wrong length or with a non-positive entry is refused in one
+    line naming the flag, before any data is loaded or any run directory made."""
+    for weights in ("1", "1,0", "1,x"):
+        r = subprocess.run([sys.executable, "-m", "experiments.train", f"--demos={dataset},{dataset}",
+                            f"--demo_weights={weights}", f"--out={tmp_path / 'run'}"], capture_output=True, text=True,
+                           cwd=Path(__file__).resolve().parents[1], timeout=300)
+        assert r.returncode != 0 and "--demo_weights: expected one positive integer per --demos dataset (2), got " \
+            f"{weights}" in r.stderr, r.stderr[-2000:]
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_longer_table_compiles_the_draw_again_not_the_update(dataset, caplog):

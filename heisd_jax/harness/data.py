@@ -42,7 +42,8 @@ def load_steps(path: str, episodes: list[int] | None = None) -> StepTable:
 
 
 def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]],
-                    task_weights: Mapping[str, int] | None = None) -> StepTable:
+                    task_weights: Mapping[str, int] | None = None,
+                    source_weights: Sequence[int] | None = None) -> StepTable:
     """The steps of several datasets' episodes ((path, episode indices or None for all), in
     order) as one host table. Each column is allocated once and filled episode by episode
     from the memory-mapped shards, so a table of N steps holds one copy of them in memory,
@@ -50,26 +51,34 @@ def load_step_table(sources: Sequence[tuple[str, Sequence[int] | None]],
     trains on ~1.3M steps, ~31 GB of images).
 
     `task_weights` (task name -> a positive integer; tasks not named: 1) makes `draw_rows`
-    draw each step in proportion to its episode's task's weight. Where every step's weight
-    is 1 the table holds none, and draws as a table loaded without weights."""
-    plan = []  # (dataset, episode index)
-    for path, episodes in sources:
+    draw each step in proportion to its episode's task's weight; `source_weights` (a positive
+    integer per source) multiplies that by its source's, so that, say, the newest data is drawn
+    several times as often as an aggregate of older rounds. Where every step's weight is 1 the
+    table holds none, and draws as a table loaded without weights."""
+    if source_weights is None:
+        source_weights = [1] * len(sources)
+    if len(source_weights) != len(sources) or not all(isinstance(n, (int, np.integer)) and n >= 1 for n in source_weights):
+        raise ValueError(f"source weights must be one positive integer per dataset ({len(sources)}), got "
+                         f"{list(source_weights)}")
+    plan = []  # (dataset, episode index, its source's weight)
+    for (path, episodes), n in zip(sources, source_weights):
         ds = demos.DemoDataset(path)
-        plan += [(ds, i) for i in (range(len(ds)) if episodes is None else episodes)]
+        plan += [(ds, i, n) for i in (range(len(ds)) if episodes is None else episodes)]
     if not plan:
         raise ValueError(f"{[str(p) for p, _ in sources]}: no episodes to load")
-    shapes = {str(ds.path): ds.shard(ds.episodes[i]["shard"])["image"].shape[1:] for ds, i in plan}
+    shapes = {str(ds.path): ds.shard(ds.episodes[i]["shard"])["image"].shape[1:] for ds, i, _ in plan}
     if len(set(shapes.values())) != 1:
         raise ValueError(f"the datasets hold images of different shapes: {shapes}")
-    n = sum(ds.episodes[i]["length"] for ds, i in plan)
+    n = sum(ds.episodes[i]["length"] for ds, i, _ in plan)
     first = plan[0][0].shard(plan[0][0].episodes[plan[0][1]]["shard"])
     table = StepTable(**{f: np.empty((n, *first[f].shape[1:]), first[f].dtype) for f in ("image", "proprio", "action")},
                       instruction=np.empty((n, language.MAX_INSTRUCTION_TOKENS), np.int32))
     weights = task_weights or {}
-    table = with_row_weights(table, np.concatenate([np.full(ds.episodes[i]["length"], weights.get(ds.episodes[i]["task"], 1))
-                                                    for ds, i in plan]))
+    table = with_row_weights(table, np.concatenate([np.full(ds.episodes[i]["length"],
+                                                            weights.get(ds.episodes[i]["task"], 1) * source)
+                                                    for ds, i, source in plan]))
     row = 0
-    for ds, i in plan:
+    for ds, i, _ in plan:
         e = ds.episodes[i]
         shard, rows = ds.shard(e["shard"]), slice(e["start"], e["start"] + e["length"])
         out = slice(row, row + e["length"])
@@ -94,6 +103,18 @@ def with_row_weights(table: StepTable, row_weight: np.ndarray) -> StepTable:
     if np.all(row_weight == 1):
         return table.replace(cumulative_weight=None)
     return table.replace(cumulative_weight=np.cumsum(row_weight, dtype=np.int64).astype(np.int32))
+
+
+def draw_share(table: StepTable, rows: slice) -> float:
+    """The share of `draw_rows`' draws that land in `rows` (a contiguous range of the table's
+    rows, say one source's of `load_step_table`)."""
+    start, stop, _ = rows.indices(table.size)
+    if stop <= start:
+        return 0.0
+    if table.cumulative_weight is None:
+        return (stop - start) / table.size
+    cum = np.asarray(table.cumulative_weight, np.int64)
+    return float(cum[stop - 1] - (cum[start - 1] if start else 0)) / float(cum[-1])
 
 
 def random_episode_split(path: str, holdout: float, seed: int = 0) -> tuple[list[int], list[int]]:
