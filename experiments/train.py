@@ -217,14 +217,12 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
                                   d_model=FLAGS.d_model, n_layers=FLAGS.n_layers,
                                   mlp_dim=vla.swiglu_width(FLAGS.d_model))
     mngr = checkpoint.manager(out / "state")
-    state = training.init_state(model_cfg, cfg)
-    if init is not None:
-        state = training.continue_from(state, init[0])
-        tok = init[2]
+    tok = init[2] if init is not None else ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
+    if mngr.latest_step() is None:
+        state = (training.continue_from(model_cfg, cfg, init[0]) if init is not None
+                 else training.init_state(model_cfg, cfg))
     else:
-        tok = ActionTokenizer.fit(np.asarray(host.action), model_cfg.vocab_size)
-    if mngr.latest_step() is not None:
-        state, meta = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
+        state, meta = checkpoint.restore(mngr, jax.eval_shape(lambda: training.init_state(model_cfg, cfg)))
         if meta["config"] != dataclasses.asdict(model_cfg):
             raise app.UsageError(f"{out} holds a run with another model config; use another --out")
         tok = ActionTokenizer.from_dict(meta["tokenizer"])

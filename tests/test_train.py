@@ -65,10 +65,17 @@ def test_training_continues_from_a_bf16_policy_in_float32_master_weights(dataset
     tok = ActionTokenizer.fit(np.asarray(table.action), CFG.vocab_size)
     cfg = training.TrainConfig(steps=2, batch_size=16, lr=3e-3, warmup_steps=1)
     stored = checkpoint.as_param_dtype(vla.init_params(CFG, jax.random.PRNGKey(7)), "bfloat16")
-    state = training.continue_from(training.init_state(CFG, cfg), stored)
+    state = training.continue_from(CFG, cfg, stored)
     for own, new in zip(jax.tree.leaves(state.params), jax.tree.leaves(stored)):
         assert own.dtype == jnp.float32 and new.dtype == jnp.bfloat16
         np.testing.assert_array_equal(own, new.astype(jnp.float32))  # the stored values, exactly
+    # ... the very state of a random initialisation with its parameters replaced, optimizer state and step included.
+    fresh = training.init_state(CFG, cfg)
+    replaced = fresh.replace(params=jax.tree.map(lambda new, own: new.astype(own.dtype), stored, fresh.params))
+    assert jax.tree.structure(state) == jax.tree.structure(replaced)
+    for a, b in zip(jax.tree.leaves(state), jax.tree.leaves(replaced)):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
     state, _ = training.make_train_step(CFG, cfg, tok)(state, table, jax.random.PRNGKey(0))
     assert all(x.dtype == jnp.float32 for x in jax.tree.leaves(state.params))  # updates stay in float32
 

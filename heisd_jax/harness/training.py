@@ -115,12 +115,21 @@ def init_state(model_cfg: vla.VLAConfig, cfg: TrainConfig) -> TrainState:
     return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
 
 
-def continue_from(state: TrainState, params) -> TrainState:
-    """`state` with `params` (a policy checkpoint's, e.g. a DAgger round's starting point) as its
-    parameters, cast to the state's own dtypes: the float32 master weights. A policy stored
-    in bfloat16 would otherwise make the master weights bfloat16, where the optimizer's small
-    updates round away (and optax keeps each parameter's dtype)."""
-    return state.replace(params=jax.tree.map(lambda new, own: jnp.asarray(new, own.dtype), params, state.params))
+def continue_from(model_cfg: vla.VLAConfig, cfg: TrainConfig, params) -> TrainState:
+    """A fresh training state (step 0, a new optimizer state) around `params` (a policy
+    checkpoint's, e.g. a DAgger round's starting point), cast to `init_state`'s dtypes: the
+    float32 master weights. A policy stored in bfloat16 would otherwise make the master weights
+    bfloat16, where the optimizer's small updates round away (and optax keeps each parameter's
+    dtype). It equals `init_state`'s state with its parameters replaced, but draws no random
+    initialisation only to discard it: one compiled program, where the eager draw runs (and on
+    a GPU compiles) one small program per parameter."""
+    own = jax.eval_shape(lambda: init_state(model_cfg, cfg))
+
+    def make(params):
+        params = jax.tree.map(lambda new, like: jnp.asarray(new, like.dtype), params, own.params)
+        return TrainState(step=jnp.zeros((), jnp.int32), params=params, opt_state=optimizer(cfg).init(params))
+
+    return jax.jit(make)(params)
 
 
 def soft_bin_targets(bins: jnp.ndarray, n_bins: int, sigma) -> jnp.ndarray:
