@@ -267,10 +267,10 @@ def plan(w: Path) -> list[Stage]:
     if FLAGS.fresh_round:  # one round more, on fresh data weighted by that evaluation's failures
         r, weighed = FLAGS.rounds + 1, [f"--weights_from={w / 'eval_ar.json'}", "--keep_total"]
         fresh = [str(w / "fresh_demos"), str(w / f"dagger{r}")]
-        drawn = [f"--demo_weights={','.join(['1'] * len(data) + [str(FLAGS.fresh_weight)] * len(fresh))}"]
+        drawn = ",".join(["1"] * len(data) + [str(FLAGS.fresh_weight)] * len(fresh))  # the aggregate's steps 1
         stages += [demonstrations("fresh_demos", w / "fresh_demos", *weighed, f"--first_episode={100000 * r + 50000}"),
                    dagger(r, 0.0, *weighed),
-                   fine_tune(r, data + fresh, *drawn) if FLAGS.fresh_weight else fine_tune(r, fresh),
+                   fine_tune(r, data + fresh, f"--demo_weights={drawn}") if FLAGS.fresh_weight else fine_tune(r, fresh),
                    evaluation("fresh_eval", _policy(w, r), w / "eval_ar_fresh.json")]
         data += fresh
     final = _policy(w, _final_round())

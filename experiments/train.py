@@ -141,16 +141,16 @@ def _demo_weights() -> list[int]:
     return [int(v) for v in FLAGS.demo_weights]
 
 
-def _tables(task_weights: dict[str, int]):
+def _tables(draw: dict):
     """(train, validation) step tables on the host, and the (image size, views) of the data:
-    the training episodes of every --demos dataset in one table, drawn by `task_weights` and
-    --demo_weights (`data.load_step_table`), the first dataset's held-out episodes (its
+    the training episodes of every --demos dataset in one table, drawn by `draw`'s task and
+    dataset weights (`data.load_step_table`), the first dataset's held-out episodes (its
     training episodes where it holds none out) for validation, drawn uniformly."""
     splits = [data.random_episode_split(path, FLAGS.holdout) for path in FLAGS.demos]
     t0 = time.perf_counter()
     try:
         host = data.load_step_table([(path, train_eps) for path, (train_eps, _) in zip(FLAGS.demos, splits)],
-                                    task_weights, _demo_weights())
+                                    draw["task_weights"], draw["demo_weights"])
     except ValueError as e:
         raise app.UsageError(f"--demos: {e}") from e
     row = 0
@@ -165,8 +165,8 @@ def _tables(task_weights: dict[str, int]):
     val_host = data.load_steps(FLAGS.demos[0], first_val or first_train)
     print(f"loaded {host.size} training and {val_host.size} held-out steps in {time.perf_counter() - t0:.1f}s")
     PHASES.lap("load")
-    if task_weights:
-        print(f"steps drawn by their task's failure weight: {task_weights}")
+    if draw["task_weights"]:
+        print(f"steps drawn by their task's failure weight: {draw['task_weights']}")
     h, w, _ = host.image.shape[1:]
     if w % h:
         raise app.UsageError(f"images of {h}x{w} are not square views tiled side by side")
@@ -200,8 +200,8 @@ def _first(tree):
     return jax.device_put(tree, jax.local_devices()[0])
 
 
-def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]):
-    host, val_host, image_size, n_views = _tables(task_weights)
+def train_vla(out: Path, cfg: training.TrainConfig, draw: dict):
+    host, val_host, image_size, n_views = _tables(draw)
     init = None
     if FLAGS.init:
         try:
@@ -245,8 +245,7 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
                 "val_decisive": [round(float(a), 4) for a in vm["decisive"]]}
 
     meta = checkpoint.metadata(model_cfg, tok, extra={"train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-                                                      "task_weights": task_weights, "demo_weights": _demo_weights(),
-                                                      "init": FLAGS.init,
+                                                      **draw, "init": FLAGS.init,
                                                       "compute_dtype": FLAGS.compute_dtype},
                                text_vocab=language.VOCAB)
     state = _loop(out, mngr, state, meta, cfg, lambda st, k: step(st, table, k), record)
@@ -259,9 +258,9 @@ def train_vla(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]
         PHASES.lap("export")
 
 
-def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, int]):
+def train_drafter(out: Path, cfg: training.TrainConfig, draw: dict):
     tparams, model_cfg, _, _ = checkpoint.load_policy(FLAGS.target, text_vocab=language.VOCAB)
-    host, val_host, _, _ = _tables(task_weights)
+    host, val_host, _, _ = _tables(draw)
     if host.image.shape[1:] != model_cfg.image_shape:
         raise app.UsageError(f"the target takes images {model_cfg.image_shape}, the demos hold {host.image.shape[1:]}")
     table, val_table = jax.device_put(host), jax.device_put(val_host)
@@ -274,7 +273,7 @@ def train_drafter(out: Path, cfg: training.TrainConfig, task_weights: dict[str, 
     state = training.init_drafter_state(model_cfg, cfg)
     meta = {"format": checkpoint.FORMAT, "kind": "drafter_run", "config": dataclasses.asdict(model_cfg),
             "target_fingerprint": fp, "train": dataclasses.asdict(cfg), "demos": list(FLAGS.demos),
-            "task_weights": task_weights, "demo_weights": _demo_weights()}
+            **draw}
     if mngr.latest_step() is not None:
         state, old = checkpoint.restore(mngr, jax.eval_shape(lambda: state))
         if old.get("target_fingerprint") != fp:
@@ -308,7 +307,7 @@ def main(argv):
         task_weights = tasks_lib.parse_suite_weights(cli.failure_weights(FLAGS.weights_from)) if FLAGS.weights_from else {}
         for path in FLAGS.demos:
             demos.DemoDataset(path)
-        _demo_weights()
+        draw = {"task_weights": task_weights, "demo_weights": _demo_weights()}  # how the steps are drawn
         for name in ("init",) if FLAGS.model == "vla" else ("target",):
             path = getattr(FLAGS, name)
             if path and not Path(path).is_dir():
@@ -325,7 +324,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     out.mkdir(parents=True, exist_ok=True)
     PHASES.lap("start")
-    (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg, task_weights)
+    (train_vla if FLAGS.model == "vla" else train_drafter)(out, cfg, draw)
     print(PHASES.line())
 
 
