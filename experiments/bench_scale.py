@@ -3,7 +3,8 @@
   python -m experiments.bench_scale --target_scale=llama2-7b --dtype=bfloat16 --batch_sizes=1,16,64 \
       --out=results/bench_scale.json
 
-Per batch size and pass kind (the prefill: vision tower + the prompt through the decoder;
+Per batch size and pass kind (the prefill: vision tower + the prompt through the decoder; the
+vision tower alone (the prompt's embeddings: what of the prefill the decoder does not do);
 one cached token; a verification pass of T tokens under a causal mask; the prefill with T
 candidate tokens appended; one drafter pass over T tokens), the median wall time of a jitted
 call and (--in_graph) its marginal cost inside a compiled loop, which a decode loop pays per
@@ -38,7 +39,7 @@ cli.positive_int_list("verify_tokens")
 flags.DEFINE_integer("candidates", 28, "Candidate tokens appended to the prefill (4 actions of 7).")
 flags.DEFINE_enum("layout", "per_layer", ["per_layer", "scan", "unrolled_scan"], "Decoder weights: one array per "
                   "layer (the expansion's), or stacked under a scan (the trained checkpoints'), rolled or unrolled.")
-flags.DEFINE_list("passes", [], "Pass kinds to time (prefill, decode, prefill+block, verifyT, drafterT); "
+flags.DEFINE_list("passes", [], "Pass kinds to time (vision, prefill, decode, prefill+block, verifyT, drafterT); "
                   "empty: all.")
 flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
 flags.DEFINE_bool("in_graph", True, "Also time each pass inside a compiled loop (no per-call dispatch: what a "
@@ -73,13 +74,15 @@ def pass_cost(cfg: vla.VLAConfig, kind: str, b: int, t: int) -> tuple[float, flo
         w = layer_params(cfg) + 2 * d * d
         flops = 2 * b * t * w + 2 * b * t * d * 256
         return (w + 2 * b * s * d) * byte, flops + 4 * b * t * (s + t) * d
+    vw = cfg.vision_width
+    vis_w = cfg.vision_layers * (4 * vw * vw + 3 * vw * cfg.vision_mlp) + vw * d
+    vis_flops = 2 * b * cfg.image_tokens * vis_w + 4 * b * cfg.vision_layers * cfg.image_tokens ** 2 * vw
+    if kind == "vision":
+        return vis_w * byte, vis_flops
     if kind.startswith("prefill"):
         p = cfg.prompt_len + (t if kind == "prefill+block" else 0)
-        vw = cfg.vision_width
-        vis_w = cfg.vision_layers * (4 * vw * vw + 3 * vw * cfg.vision_mlp) + vw * d
         flops = (2 * b * p * n_l * layer_params(cfg) + 2 * b * logits_tokens * d * cfg.vocab
-                 + 4 * b * n_l * p * p * d + 2 * b * cfg.image_tokens * vis_w
-                 + 4 * b * cfg.vision_layers * cfg.image_tokens ** 2 * vw)
+                 + 4 * b * n_l * p * p * d + vis_flops)
         return (dec_w + vis_w) * byte, flops
     kv = 2 * n_l * b * s * d * byte
     flops = 2 * b * t * n_l * layer_params(cfg) + 2 * b * t * d * cfg.vocab + 4 * b * n_l * t * (s + t) * d
@@ -95,7 +98,7 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     tokens = sorted({int(x) for x in FLAGS.verify_tokens})
-    valid = ["prefill", "decode", "prefill+block"] + [f"{k}{t}" for k in ("verify", "drafter") for t in tokens]
+    valid = ["vision", "prefill", "decode", "prefill+block"] + [f"{k}{t}" for k in ("verify", "drafter") for t in tokens]
     if set(FLAGS.passes) - set(valid):
         raise app.UsageError(f"--passes: unknown {sorted(set(FLAGS.passes) - set(valid))}; valid: {valid}")
     params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
@@ -114,7 +117,8 @@ def main(argv):
           f"{counts['decoder'] / 1e9:.2f}B, vision {counts['vision'] / 1e9:.2f}B parameters; prompt {cfg.prompt_len}, "
           f"cache {cfg.cache_slots} slots", flush=True)
     # the pure pieces (in-graph timing loops them), and their jitted calls
-    pieces = {"prefill": lambda p, o: vla.prefill(p, cfg, o)[0],
+    pieces = {"vision": lambda p, o: vla.prompt_embeddings(p, cfg, o),
+              "prefill": lambda p, o: vla.prefill(p, cfg, o)[0],
               "prefill+block": lambda p, o, tk, dp, m: vla.prefill_with_block(p, cfg, o, tk, dp, m)[0],
               "decode": lambda p, c, tk, dp, m: vla.cached_pass(p, cfg, c, tk, dp, m)[0],
               "drafter": lambda dp, c, e, pos, slot, m: drafter.cached_pass(dp, cfg, c, e, e, pos, slot, m)[0]}
@@ -133,7 +137,7 @@ def main(argv):
             return tk, jnp.broadcast_to(jnp.arange(t), (b, t)), jnp.broadcast_to(vla.causal_mask(t, t), (b, t, t))
 
         # pass kind -> (new tokens, piece, its arguments)
-        calls = {"prefill": (1, "prefill", (params, obs)), "decode": (1, "decode", (params, full, *causal(1))),
+        calls = {"vision": (0, "vision", (params, obs)), "prefill": (1, "prefill", (params, obs)), "decode": (1, "decode", (params, full, *causal(1))),
                  "prefill+block": (FLAGS.candidates, "prefill+block", (params, obs, *causal(FLAGS.candidates)))}
         for t in tokens:
             calls[f"verify{t}"] = (t, "decode", (params, full, *causal(t)))
