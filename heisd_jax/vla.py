@@ -375,25 +375,10 @@ class DecoderBlock(nn.Module):
             attn = jax.nn.softmax(jnp.concatenate([cache_logits, logits], -1), -1).astype(cfg.dtype)
             out = (jnp.einsum("bhts,bshd->bthd", attn[..., :-t], layer_v)
                    + jnp.einsum("bhts,bshd->bthd", attn[..., -t:], v))
-        x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(heads_to_rows(out).reshape(b, t, d))
+        x = x + nn.Dense(d, use_bias=False, dtype=cfg.dtype, name="out")(out.reshape(b, t, d))
         x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype,
                                                                           name="mlp_norm")(x))
         return x, (k, v)
-
-
-def heads_to_rows(out: jnp.ndarray) -> jnp.ndarray:
-    """Attention's output [B, T, H, Dh], laid out row-major before the output projection reads
-    it. XLA computes it as [B, H, T, Dh] and, left alone, fuses the transpose into the
-    projection's matrix product, a Triton kernel that reads its operand strided: at 7B and
-    277 rows that product ran at a fifth of the tensor cores' peak. Apart, the transpose is a
-    small copy and the projection a plain GEMM. (One token per row: the transpose is free.)"""
-    return out if out.shape[1] == 1 else jax.lax.optimization_barrier(out)
-
-
-@functools.wraps(nn.dot_product_attention)  # flax passes the keywords its signature names
-def _attention_rows(*args, **kwargs):
-    """flax's dot-product attention, its output laid out as `heads_to_rows` says."""
-    return heads_to_rows(nn.dot_product_attention(*args, **kwargs))
 
 
 def ancestor_slots(positions: jnp.ndarray, block_mask: jnp.ndarray, slots: int) -> jnp.ndarray:
@@ -458,8 +443,7 @@ class VisionEncoder(nn.Module):
             # Batch-invariant numerics take this softmax in float32, as the decoder's is: a bf16
             # softmax's intermediates round as XLA fuses them, which differs per batch size.
             x = x + nn.MultiHeadDotProductAttention(cfg.vision_heads, dtype=cfg.dtype, name=f"attn{i}",
-                                                    force_fp32_for_softmax=cfg.batch_invariant,
-                                                    attention_fn=_attention_rows)(h, h, mask=mask)
+                                                    force_fp32_for_softmax=cfg.batch_invariant)(h, h, mask=mask)
             x = x + SwiGLU(cfg.vision_mlp, cfg.dtype, name=f"mlp{i}")(
                 nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name=f"mlp_norm{i}")(x))
         x = nn.RMSNorm(epsilon=eps, dtype=cfg.dtype, name="out_norm")(x)
