@@ -43,10 +43,11 @@ from heisd_jax.observation import PAD_ID, TEXT_LEN, TEXT_VOCAB, Observation
 from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
 NEG_INF = -1e9
+ATTENTIONS = ("xla", "cudnn")  # VLAConfig.attention
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
-NUMERICS = ("dtype", "matmul_precision", "unroll")  # VLAConfig's fields that set how, not what, it computes
+NUMERICS = ("dtype", "matmul_precision", "unroll", "attention")  # VLAConfig's fields that set how, not what, it computes
 
 
 @dataclasses.dataclass(frozen=True)
@@ -70,6 +71,12 @@ class VLAConfig:
     matmul_precision: str = "float32"
     # Inference passes with the decoder layers, and AR's token loop, unrolled (see `VLA`).
     unroll: bool = False
+    # How a pass without a cache (the prefill, with or without a block) attends in the decoder
+    # (ATTENTIONS): "xla", products and softmax as XLA fuses them; "cudnn", cuDNN's fused
+    # (flash) attention, on a GPU in bfloat16 or float16 only. At a 7B scale's 277-token prompt
+    # the fused kernel saves what three kernels per layer and the strided read of their output
+    # cost (docs/scale.md); `scale.expand_target` picks it where it runs.
+    attention: str = "xla"
     # Larger architectures (`heisd_jax.scale` expands a trained target into them); 0 means
     # "as the fields above", which is how every trained checkpoint is built.
     vocab: int = 0  # 0: text_vocab + 256; more: unused ids after the action ids
@@ -125,6 +132,11 @@ class VLAConfig:
     def __post_init__(self):
         if self.matmul_precision not in MATMUL_PRECISIONS:
             raise ValueError(f"matmul_precision {self.matmul_precision!r}: valid are {', '.join(MATMUL_PRECISIONS)}")
+        if self.attention not in ATTENTIONS:
+            raise ValueError(f"attention {self.attention!r}: valid are {', '.join(ATTENTIONS)}")
+        if self.attention == "cudnn" and self.dtype not in ("bfloat16", "float16"):
+            raise ValueError(f"attention 'cudnn' computes in bfloat16 or float16, not {self.dtype}; "
+                             f"valid for {self.dtype}: xla")
         if self.n_views < 1:
             raise ValueError(f"n_views must be >= 1, got {self.n_views}")
         if self.image_size % self.patch_size:
@@ -364,6 +376,8 @@ class DecoderBlock(nn.Module):
             block = _attend_at_ar_slots(q[:, p:], k[:, p:], v[:, p:], jnp.pad(k[:, :p], pad), jnp.pad(v[:, :p], pad),
                                         seen, ancestor_slots, scale, cfg.dtype)
             out = jnp.concatenate([jnp.einsum("bhts,bshd->bthd", attn, v[:, :p]), block], 1)
+        elif layer_k is None and cfg.attention == "cudnn":
+            out = fused_attention(q, k, v, block_mask, hd)
         elif layer_k is None:
             attn = jax.nn.softmax(logits, -1).astype(cfg.dtype)
             out = jnp.einsum("bhts,bshd->bthd", attn, v)
@@ -379,6 +393,18 @@ class DecoderBlock(nn.Module):
         x = x + SwiGLU(cfg.mlp_dim, cfg.dtype, name="mlp")(nn.RMSNorm(epsilon=cfg.norm_eps, dtype=cfg.dtype,
                                                                           name="mlp_norm")(x))
         return x, (k, v)
+
+
+def fused_attention(q, k, v, mask, head_dim: int) -> jnp.ndarray:
+    """cuDNN's fused attention of q [B, T, H, Dh] over k, v [B, S, H, Dh] where mask [B, T, S]
+    holds: [B, T, H, Dh], laid out row by row, so the output projection after it reads it as
+    a plain matrix. A masked key gets the additive bias NEG_INF (finite: a query that sees no
+    key, a pad token's, gets a finite average, as under XLA's softmax, not NaN)."""
+    if jax.default_backend() != "gpu":
+        raise ValueError(f"attention 'cudnn' runs on a GPU, not on {jax.default_backend()}; valid here: xla")
+    bias = jnp.where(mask[:, None], 0.0, NEG_INF).astype(q.dtype)
+    return jax.nn.dot_product_attention(q, k, v, bias=bias, scale=float(1.0 / np.sqrt(head_dim)),
+                                        implementation="cudnn")
 
 
 def ancestor_slots(positions: jnp.ndarray, block_mask: jnp.ndarray, slots: int) -> jnp.ndarray:

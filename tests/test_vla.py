@@ -122,6 +122,18 @@ def test_config_rejects_bad_shapes():
         vla.VLAConfig(cache_slots=20)
 
 
+def test_fused_attention_is_refused_where_it_cannot_run():
+    with pytest.raises(ValueError, match="attention 'flash': valid are xla, cudnn"):
+        vla.VLAConfig(attention="flash")
+    with pytest.raises(ValueError, match="not float32; valid for float32: xla"):
+        vla.VLAConfig(attention="cudnn", dtype="float32")
+    assert "attention" not in vla.VLAConfig().architecture()  # numerics: a checkpoint serves either
+    if jax.default_backend() != "gpu":
+        cfg = vla.VLAConfig(image_size=16, d_model=32, n_heads=2, n_layers=1, attention="cudnn", dtype="bfloat16")
+        with pytest.raises(ValueError, match="runs on a GPU"):
+            vla.init_params(cfg, jax.random.PRNGKey(0))
+
+
 def test_tiled_views_give_one_patch_grid_per_view():
     one, two = vla.VLAConfig(image_size=16, patch_size=8), vla.VLAConfig(image_size=16, patch_size=8, n_views=2)
     assert two.image_shape == (16, 32, 3) and two.n_patches == 2 * one.n_patches
