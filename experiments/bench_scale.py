@@ -39,6 +39,8 @@ cli.positive_int_list("verify_tokens")
 flags.DEFINE_integer("candidates", 28, "Candidate tokens appended to the prefill (4 actions of 7).")
 flags.DEFINE_enum("layout", "per_layer", ["per_layer", "scan", "unrolled_scan"], "Decoder weights: one array per "
                   "layer (the expansion's), or stacked under a scan (the trained checkpoints'), rolled or unrolled.")
+flags.DEFINE_enum("attention", vla.VLAConfig.attention, list(vla.ATTENTIONS), "How a pass without a cache (the "
+                  "prefill) attends: XLA's fused products and softmax, or cuDNN's fused attention (GPU, bfloat16).")
 flags.DEFINE_list("passes", [], "Pass kinds to time (vision, prefill, decode, prefill+block, verifyT, drafterT); "
                   "empty: all.")
 flags.DEFINE_integer("reps", 10, "Timed calls per pass (median).")
@@ -103,6 +105,8 @@ def main(argv):
         raise app.UsageError(f"--passes: unknown {sorted(set(FLAGS.passes) - set(valid))}; valid: {valid}")
     params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)
     try:
+        vla.check_attention(FLAGS.attention)
+        dataclasses.replace(cfg0, dtype=FLAGS.dtype, attention=FLAGS.attention)  # refuses cudnn in float32
         scale.check_fits(cfg0, FLAGS.target_scale, FLAGS.dtype)
     except ValueError as e:
         raise app.UsageError(str(e)) from e
@@ -110,7 +114,7 @@ def main(argv):
     dparams = scale.expand_drafter(dparams, cfg0, FLAGS.target_scale, FLAGS.dtype)
     params, cfg = scale.expand_target(params, cfg0, FLAGS.target_scale, FLAGS.dtype)
     params, cfg = scale.with_layout(params, cfg, per_layer=FLAGS.layout == "per_layer")
-    cfg = dataclasses.replace(cfg, unroll=FLAGS.layout == "unrolled_scan")
+    cfg = dataclasses.replace(cfg, unroll=FLAGS.layout == "unrolled_scan", attention=FLAGS.attention)
     counts = scale.n_params(cfg)
     bw, peak = _peaks()
     print(f"{FLAGS.target_scale} {FLAGS.dtype} on {jax.devices()[0].device_kind}: decoder "
@@ -178,7 +182,8 @@ def main(argv):
         if FLAGS.out:
             results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
                                                      "scale": FLAGS.target_scale, "dtype": FLAGS.dtype,
-                                                     "layout": FLAGS.layout, "params": counts, "rows": rows})
+                                                     "layout": FLAGS.layout, "attention": FLAGS.attention, "params": counts,
+                                                     "rows": rows})
     print(json.dumps({"params": counts}))
 
 

@@ -316,14 +316,10 @@ def with_layout(params, cfg: vla.VLAConfig, per_layer: bool):
 
 def expand_target(params, cfg: vla.VLAConfig, name: str | TargetScale, dtype: str = "bfloat16", seed: int = 0):
     """(params, config) of target (params, cfg) expanded to scale `name` (`SCALES`), its
-    parameters in `dtype` on the default device. "shipped" only casts to dtype. An expanded
-    target attends in its prefill with cuDNN's fused kernel where that runs (bfloat16 on a
-    GPU: `VLAConfig.attention`), as a 7B VLA's serving stack does."""
+    parameters in `dtype` on the default device. "shipped" only casts to dtype."""
     new = dataclasses.replace(scaled_config(cfg, name), dtype=dtype)
     if _resolve(name) is None:
         return jax.tree.map(lambda x: x.astype(dtype), params), new
-    if dtype == "bfloat16" and jax.default_backend() == "gpu":
-        new = dataclasses.replace(new, attention="cudnn")
     e = _Expander(cfg, new, dtype, seed)
     d = cfg.d_model
     out = {"vision": e.vision(params["vision"]),

@@ -73,9 +73,9 @@ class VLAConfig:
     unroll: bool = False
     # How a pass without a cache (the prefill, with or without a block) attends in the decoder
     # (ATTENTIONS): "xla", products and softmax as XLA fuses them; "cudnn", cuDNN's fused
-    # (flash) attention, on a GPU in bfloat16 or float16 only. At a 7B scale's 277-token prompt
-    # the fused kernel saves what three kernels per layer and the strided read of their output
-    # cost (docs/scale.md); `scale.expand_target` picks it where it runs.
+    # (flash) attention, on a GPU in bfloat16 or float16 only (`check_attention`). At a 7B
+    # scale's 277-token prompt the fused kernel saves what three kernels per layer and the
+    # strided read of their output cost (docs/scale.md).
     attention: str = "xla"
     # Larger architectures (`heisd_jax.scale` expands a trained target into them); 0 means
     # "as the fields above", which is how every trained checkpoint is built.
@@ -395,13 +395,18 @@ class DecoderBlock(nn.Module):
         return x, (k, v)
 
 
+def check_attention(attention: str) -> None:
+    """Refuses an attention (`VLAConfig.attention`) this process's backend cannot run."""
+    if attention == "cudnn" and jax.default_backend() != "gpu":
+        raise ValueError(f"attention 'cudnn' runs on a GPU, not on {jax.default_backend()}; valid here: xla")
+
+
 def fused_attention(q, k, v, mask, head_dim: int) -> jnp.ndarray:
     """cuDNN's fused attention of q [B, T, H, Dh] over k, v [B, S, H, Dh] where mask [B, T, S]
     holds: [B, T, H, Dh], laid out row by row, so the output projection after it reads it as
     a plain matrix. A masked key gets the additive bias NEG_INF (finite: a query that sees no
     key, a pad token's, gets a finite average, as under XLA's softmax, not NaN)."""
-    if jax.default_backend() != "gpu":
-        raise ValueError(f"attention 'cudnn' runs on a GPU, not on {jax.default_backend()}; valid here: xla")
+    check_attention("cudnn")
     bias = jnp.where(mask[:, None], 0.0, NEG_INF).astype(q.dtype)
     return jax.nn.dot_product_attention(q, k, v, bias=bias, scale=float(1.0 / np.sqrt(head_dim)),
                                         implementation="cudnn")

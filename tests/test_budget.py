@@ -253,6 +253,11 @@ def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     other = dict(params, target=jax.tree.map(lambda x: x * 2, params["target"]))
     assert cost_model.load_or_calibrate(other, CFG, one, 2, tmp_path, logs.append) == table
     assert cost_model.table_key(dataclasses.replace(CFG, mlp_dim=2 * CFG.mlp_dim), one, 2) != table.key
+    # The prefill's attention kernel changes its price: a table of the other one is not used (XLA's,
+    # the default, keeps the key it had before the choice existed, so committed tables stay valid).
+    fused = cost_model.table_key(dataclasses.replace(CFG, dtype="bfloat16", attention="cudnn"), one, 2)
+    assert fused != cost_model.table_key(dataclasses.replace(CFG, dtype="bfloat16"), one, 2)
+    assert "attention" not in table.key
 
     # A file measured elsewhere (here: another device) under this key's name is redone, never trusted.
     measured = []

@@ -110,6 +110,23 @@ def test_a_method_computes_in_its_targets_own_dtype_unless_given():
         methods.in_numerics(tiny_models.CFG, methods.Numerics(), mixed)
 
 
+def test_fused_attention_is_a_numerics_setting_refused_where_it_cannot_run():
+    import jax
+
+    import tiny_models
+
+    numerics = methods.config("ar", {"attention": "cudnn", "dtype": "bfloat16"}).numerics
+    assert numerics.attention == "cudnn"
+    with pytest.raises(ValueError, match="attention 'bad'"):
+        methods.config("ar", {"attention": "bad"})
+    if jax.default_backend() != "gpu":  # refused from the config, before any weight is made
+        with pytest.raises(ValueError, match="runs on a GPU, not on cpu; valid here: xla"):
+            methods.numerics_config(tiny_models.CFG, numerics, "bfloat16")
+    f32 = methods.numerics_config(tiny_models.CFG, methods.Numerics(), "float32")
+    with pytest.raises(ValueError, match="not float32; valid for float32: xla"):
+        dataclasses.replace(f32, attention="cudnn")
+
+
 def test_what_does_not_fit_the_targets_cache_is_refused_from_configs_alone():
     # The shipped target: every decoding method's defaults fit; more candidates than its cache
     # holds are refused with the limit, as make_policy would refuse them after loading.

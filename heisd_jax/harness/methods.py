@@ -62,12 +62,13 @@ class Numerics:
     """How a VLA method's models compute: the parameters' and KV caches' dtype (None: the
     target's own, the dtype its checkpoint stores its parameters in: float32 for the shipped
     target, bfloat16 for one exported with `train --export_param_dtype=bfloat16`), the precision
-    of float32 matrix products, the architecture the target is expanded to, and whether the
-    inference passes are unrolled."""
+    of float32 matrix products, the architecture the target is expanded to, whether the
+    inference passes are unrolled, and how the prefill attends (`vla.VLAConfig.attention`)."""
     dtype: str | None = None
     matmul_precision: str = vla.VLAConfig.matmul_precision
     target_scale: str = scale.SHIPPED
     unroll: bool = vla.VLAConfig.unroll
+    attention: str = vla.VLAConfig.attention
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,9 +110,10 @@ def in_numerics(cfg: vla.VLAConfig, numerics: Numerics, target, drafter=None):
 def numerics_config(cfg: vla.VLAConfig, numerics: Numerics, dtype: str) -> vla.VLAConfig:
     """The model config of the target `cfg` at `numerics` in compute dtype `dtype` (what
     `in_numerics` returns), without making any parameters: what a decode-cost table is keyed by."""
+    vla.check_attention(numerics.attention)
     big = scale.scaled_config(cfg, numerics.target_scale)
     return dataclasses.replace(big, dtype=dtype, matmul_precision=numerics.matmul_precision or big.matmul_precision,
-                               unroll=numerics.unroll)
+                               unroll=numerics.unroll, attention=numerics.attention)
 
 
 def _show_trees(trees: tuple[tuple[int, int, int], ...]) -> str:
@@ -163,6 +165,9 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                      "straight-line program per pass instead of a loop the host drives layer by layer on a GPU; "
                      "compiles several times longer, runs slower on a CPU, and on a GPU is faster inside a compiled "
                      "loop but slower called from Python (BENCHMARKS.md)."),
+        "attention": _S("attention", "How the prefill attends in the decoder: 'xla' (products and softmax as XLA "
+                        "fuses them) or 'cudnn' (cuDNN's fused attention; a GPU, bfloat16): at the 7B scale the "
+                        "prefill 1.1x faster (docs/scale.md).", vla.ATTENTIONS),
     },
     spec_decode.SpecConfig: {
         "top_k": _S("top_k", "Draft tree: children kept per level (EAGLE-2 top-k)."),
