@@ -13,6 +13,7 @@ identical, and the mean bin distance where they are not.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 
@@ -37,6 +38,8 @@ flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle through.
 flags.DEFINE_integer("envs", 64, "Envs recorded in parallel (the batch size compared).")
 flags.DEFINE_integer("steps", 20, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 1000, "States decoded one at a time (spread over the recording).")
+flags.DEFINE_enum("attention", vla.VLAConfig.attention, list(vla.ATTENTIONS), "How the 16-bit expansions' prefill "
+                  "attends (vla.VLAConfig.attention; cudnn: a GPU); float32 always attends with XLA's.")
 flags.DEFINE_string("out", "results/scale_check.json", "Results JSON.")
 
 
@@ -49,6 +52,10 @@ def main(argv):
     for name in ("envs", "steps"):
         if getattr(FLAGS, name) < 1:
             raise app.UsageError(f"--{name} must be >= 1")
+    try:
+        vla.check_attention(FLAGS.attention)
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
     try:
         env = TabletopEnv(tasks_lib.get_tasks(FLAGS.suites), methods.env_config("ar", FLAGS.checkpoint))
         params, cfg, tok, _ = checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)
@@ -87,6 +94,8 @@ def main(argv):
     for dtype in FLAGS.dtypes:
         t0 = time.perf_counter()
         big, big_cfg = scale.expand_target(params, cfg, FLAGS.target_scale, dtype)
+        if dtype != "float32":
+            big_cfg = dataclasses.replace(big_cfg, attention=FLAGS.attention)
         jax.block_until_ready(big)
         built = time.perf_counter() - t0
         batch, one = decode_all(big, big_cfg)
@@ -95,7 +104,7 @@ def main(argv):
         dist_b = np.abs(batch - ref_batch)[live].mean(-1)
         summary[dtype] = {"identical_at_batch": float(same_b.mean()), "identical_at_batch1": float(same_1.mean()),
                           "mean_bin_distance_where_different": float(dist_b[~same_b].mean()) if (~same_b).any() else 0.0,
-                          "expand_seconds": round(built, 1)}
+                          "attention": big_cfg.attention, "expand_seconds": round(built, 1)}
         print(f"{FLAGS.target_scale} {dtype}: identical to the shipped target on {same_b.mean():.2%} of {live.sum()} "
               f"states at batch {n}, {same_1.mean():.2%} of {len(pick)} at batch 1 (expanded in {built:.0f}s)",
               flush=True)
