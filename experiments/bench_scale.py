@@ -141,7 +141,8 @@ def main(argv):
             return tk, jnp.broadcast_to(jnp.arange(t), (b, t)), jnp.broadcast_to(vla.causal_mask(t, t), (b, t, t))
 
         # pass kind -> (new tokens, piece, its arguments)
-        calls = {"vision": (0, "vision", (params, obs)), "prefill": (1, "prefill", (params, obs)), "decode": (1, "decode", (params, full, *causal(1))),
+        calls = {"vision": (0, "vision", (params, obs)), "prefill": (1, "prefill", (params, obs)),
+                 "decode": (1, "decode", (params, full, *causal(1))),
                  "prefill+block": (FLAGS.candidates, "prefill+block", (params, obs, *causal(FLAGS.candidates)))}
         for t in tokens:
             calls[f"verify{t}"] = (t, "decode", (params, full, *causal(t)))
@@ -182,8 +183,8 @@ def main(argv):
         if FLAGS.out:
             results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()),
                                                      "scale": FLAGS.target_scale, "dtype": FLAGS.dtype,
-                                                     "layout": FLAGS.layout, "attention": FLAGS.attention, "params": counts,
-                                                     "rows": rows})
+                                                     "layout": FLAGS.layout, "attention": FLAGS.attention,
+                                                     "params": counts, "rows": rows})
     print(json.dumps({"params": counts}))
 
 
