@@ -100,7 +100,8 @@ def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
     tokens = sorted({int(x) for x in FLAGS.verify_tokens})
-    valid = ["vision", "prefill", "decode", "prefill+block"] + [f"{k}{t}" for k in ("verify", "drafter") for t in tokens]
+    valid = (["vision", "prefill", "decode", "prefill+block"]
+             + [f"{k}{t}" for k in ("verify", "drafter") for t in tokens])
     if set(FLAGS.passes) - set(valid):
         raise app.UsageError(f"--passes: unknown {sorted(set(FLAGS.passes) - set(valid))}; valid: {valid}")
     params, cfg0, _, _ = checkpoint.load_policy(FLAGS.checkpoint)

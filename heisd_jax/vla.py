@@ -47,7 +47,8 @@ ATTENTIONS = ("xla", "cudnn")  # VLAConfig.attention
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
-NUMERICS = ("dtype", "matmul_precision", "unroll", "attention")  # VLAConfig's fields that set how, not what, it computes
+# VLAConfig's fields that set how, not what, it computes
+NUMERICS = ("dtype", "matmul_precision", "unroll", "attention")
 
 
 @dataclasses.dataclass(frozen=True)
