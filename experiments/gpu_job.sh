@@ -3,7 +3,8 @@
 #
 #   bash experiments/gpu_job.sh -- CMD [ARGS...] [-- CMD ...]        # run each command in turn
 #   bash experiments/gpu_job.sh per-gpu -- [@GPUS] CMD [ARGS...] [-- ...] # command i on GPU i, all at once
-#   bash experiments/gpu_job.sh start [per-gpu] -- CMD [ARGS...] [-- ...]  # either, in the background
+#   bash experiments/gpu_job.sh start [per-gpu] -- CMD [ARGS...] [-- ...]  # either, in the background,
+#                                         from a copy of the tree in $GPU_JOB_WORK/src
 #   bash experiments/gpu_job.sh poll SECONDS [PATH...]               # wait, report, pack results
 #                                         (SECONDS is capped to end 40 s before the call's 600 s limit)
 #   bash experiments/gpu_job.sh stop [PATH...]                        # end the job, report, pack results
@@ -125,10 +126,15 @@ case "${1:-}" in
     { [ "${2:-}" = "--" ] && [ $# -ge 3 ]; } || { [ "${2:-}" = per-gpu ] && [ "${3:-}" = "--" ] && [ $# -ge 4 ]; } || usage
     kill -0 "$(cat "$WORK/pid" 2>/dev/null)" 2>/dev/null && { echo "a job is already running: poll it" >&2; exit 1; }
     install
-    rm -rf "$WORK/out"; mkdir -p "$WORK/out"
-    OUT=$WORK/out GPU_JOB_SITE_READY=1 setsid nohup bash "$SELF" "${@:2}" > /dev/null 2>&1 < /dev/null &
+    rm -rf "$WORK/out" "$WORK/src"; mkdir -p "$WORK/out" "$WORK/src"
+    # The job runs in its own copy of the tree: every call of the device tool copies the working
+    # tree afresh, and a job reading the tree it replaces can find a package half there.
+    tar cf - --exclude=./.git --exclude=./.whl . | tar xf - -C "$WORK/src" \
+      || { echo "copying the tree to $WORK/src failed" >&2; exit 1; }
+    OUT=$WORK/out GPU_JOB_SITE_READY=1 setsid nohup bash "$WORK/src/experiments/gpu_job.sh" "${@:2}" \
+      > /dev/null 2>&1 < /dev/null &
     echo $! > "$WORK/pid"
-    sleep 20; tail -n 20 "$WORK/out/job.log" 2>/dev/null
+    sleep "${GPU_JOB_START_WAIT:-20}"; tail -n 20 "$WORK/out/job.log" 2>/dev/null || true
     ;;
   poll|stop)
     [ -f "$WORK/pid" ] || { echo "no background job: start one first" >&2; exit 1; }

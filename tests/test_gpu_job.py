@@ -89,3 +89,28 @@ def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_
     assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params", "b/eval_ar_fresh.json", "job.log",
             "gpu0/eval_ar.json"} <= names
     assert not any(n.startswith(("b/vla1", "b/vla3", "b/demos", "b/fresh_demos", "gpu0/trace")) for n in names)
+
+
+@pytest.mark.skipif(shutil.which("bash") is None or shutil.which("tar") is None, reason="needs bash and tar")
+def test_start_runs_the_job_from_its_own_copy_of_the_tree(tmp_path):
+    """Each device call replaces the working tree; a background job must not see that happen."""
+    repo = tmp_path / "repo"
+    (repo / "experiments").mkdir(parents=True)
+    shutil.copy(SCRIPT, repo / "experiments" / "gpu_job.sh")
+    (repo / "pkg.txt").write_text("the tree at start")
+    (repo / "go").touch()
+    work = tmp_path / "work"
+    env = dict(os.environ, GPU_JOB_WORK=str(work), GPU_JOB_SITE_READY="1", GPU_JOB_START_WAIT="0")
+    job = "while [ -e go ]; do sleep 0.1; done; cat pkg.txt > $OUT/seen.txt"  # waits until the tree has changed
+    r = subprocess.run(["bash", str(repo / "experiments" / "gpu_job.sh"), "start", "--", "sh", "-c", job], env=env,
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    (repo / "pkg.txt").unlink()  # the next call's copy of the tree, half made
+    (work / "src" / "go").unlink()
+    pid = int((work / "pid").read_text())
+    for _ in range(300):
+        if not Path(f"/proc/{pid}").exists():
+            break
+        subprocess.run(["sleep", "0.1"])
+    assert (work / "out" / "seen.txt").read_text() == "the tree at start"
+    assert "== exit 0" in (work / "out" / "job.log").read_text()
