@@ -30,7 +30,8 @@ act and every decode part (not the env step) are compiled with
 `heisd_jax.xla_options.DEVICE_LOOPS`, as the public `heisd_jax.decode_action` is: on a GPU,
 the draft rounds' loop and the budget's conditionals recorded into command buffers, which
 process-wide XLA_FLAGS would also impose on the physics program. --nodevice_loops compiles
-them with XLA's default command buffers (the comparison).
+them with XLA's default command buffers (the comparison). --compiler_options adds per-program
+XLA options to those programs alone (say, how command buffers are updated between calls).
 """
 
 from __future__ import annotations
@@ -66,6 +67,9 @@ flags.DEFINE_bool("device_loops", True, "Compile act and every decode part with 
                   "as heisd_jax.decode_action is (GPU: loops and conditionals recorded into command buffers, run "
                   "without a host round trip per iteration); --nodevice_loops: XLA's default command buffers. The env "
                   "step is compiled as always.")
+flags.DEFINE_string("compiler_options", "", "More per-program XLA options for act and every decode part (not the env "
+                    "step), key=value,...: e.g. xla_gpu_command_buffer_update_mode=<a mode the installed XLA has>, to "
+                    "time act with graphs that are not updated between calls. Checked by a one-element compile first.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -111,6 +115,14 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if FLAGS.batch < 1 or FLAGS.steps < 1:
         raise app.UsageError("--batch and --steps must be >= 1")
+    options = dict(xla_options.DEVICE_LOOPS) if FLAGS.device_loops else {}
+    try:
+        extra = xla_options.parse(FLAGS.compiler_options)
+        options.update(extra)
+        if extra:
+            xla_options.check(options)
+    except ValueError as e:
+        raise app.UsageError(f"--compiler_options: {e}") from e
     env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
     try:
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
@@ -120,7 +132,7 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     meta = policy.meta
     hcfg = meta.get("hcfg")
-    jit = functools.partial(jax.jit, compiler_options=xla_options.DEVICE_LOOPS) if FLAGS.device_loops else jax.jit
+    jit = functools.partial(jax.jit, compiler_options=options) if options else jax.jit
     fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method, jit)  # HeiSD where no option beats AR
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
@@ -226,7 +238,8 @@ def main(argv):
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
-                                                 "device_loops": FLAGS.device_loops, "median_ms": med,
+                                                 "device_loops": FLAGS.device_loops,
+                                                 "compiler_options": options, "median_ms": med,
                                                  "per_action": per_action, "breakdown_ms": breakdown,
                                                  "speedup_vs_ar": speedup,
                                                  "control_steps_per_s": loop, "kernels": kernels,

@@ -39,3 +39,39 @@ def determinism(on: bool) -> dict | None:
     """The compiler options of a program compiled deterministically where `on` (a fresh dict of
     `DETERMINISTIC`, which callers may use as a key), else None (XLA's defaults)."""
     return dict(DETERMINISTIC) if on else None
+
+
+def parse(text: str) -> dict[str, bool | int | float | str]:
+    """`key=value,key=value` as per-program XLA options: true/false become bools and numbers
+    numbers (XLA reads each by its field's type), anything else stays text (enum names,
+    lists). Raises ValueError on an entry without `=`."""
+    out: dict[str, bool | int | float | str] = {}
+    for entry in filter(None, (e.strip() for e in text.split(","))):
+        key, sep, value = entry.partition("=")
+        if not sep or not key:
+            raise ValueError(f"XLA option {entry!r} is not key=value (e.g. xla_gpu_deterministic_ops=true)")
+        if value.lower() in ("true", "false"):
+            out[key] = value.lower() == "true"
+            continue
+        for kind in (int, float):
+            try:
+                out[key] = kind(value)
+                break
+            except ValueError:
+                pass
+        else:
+            out[key] = value
+    return out
+
+
+def check(options) -> None:
+    """Compiles a one-element program with `options` on the default backend, so that an option
+    the installed XLA does not know, or a value its field cannot take, is refused in one line
+    (ValueError) before anything large compiles. Options of another backend's (xla_gpu_* on a
+    CPU) are parsed and ignored, as in any program."""
+    import jax
+    import jax.numpy as jnp
+    try:
+        jax.jit(lambda x: x + 1, compiler_options=dict(options)).lower(jnp.zeros(1)).compile()
+    except Exception as e:  # XLA reports a bad option as a runtime error with its own message
+        raise ValueError(f"XLA options {dict(options)} refused: {str(e).splitlines()[0]}") from e

@@ -31,3 +31,18 @@ def test_deterministic_is_a_valid_per_program_option():
     want = jax.jit(scatter)(x, idx)
     assert (jax.jit(scatter, compiler_options=xla_options.determinism(True))(x, idx) == want).all()
     assert want.tolist() == [3.0, 1.0, 0.0, 1.0]
+
+
+def test_parse_types_values_and_check_refuses_what_xla_does_not_know():
+    """A bool option given as text is refused by XLA, so `parse` types true/false and numbers;
+    `check` passes what XLA takes and names what it refuses."""
+    opts = xla_options.parse("xla_gpu_deterministic_ops=true, xla_gpu_graph_min_graph_size=3,xla_gpu_enable_command_buffer=")
+    assert opts == {"xla_gpu_deterministic_ops": True, "xla_gpu_graph_min_graph_size": 3,
+                    "xla_gpu_enable_command_buffer": ""}
+    xla_options.check({**xla_options.DEVICE_LOOPS, **opts})
+    with pytest.raises(ValueError, match="not a valid bool"):
+        xla_options.check({"xla_gpu_deterministic_ops": "true"})
+    with pytest.raises(ValueError, match="No such compile option: 'xla_no_such'"):
+        xla_options.check({"xla_no_such": 1})
+    with pytest.raises(ValueError, match="not key=value"):
+        xla_options.parse("xla_gpu_deterministic_ops")
