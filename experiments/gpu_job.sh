@@ -34,6 +34,9 @@
 # logs, the latest complete vla*, drafter, datastore, eval_ar*.json) and every small result file
 # (*.json, *.json.gz, *.log, *.png, *.txt under 2 MB, outside datasets and checkpoints), so a
 # measurement's output comes back unnamed; with no PATH and no build, everything.
+# A job that failed on a machine still held can be started again over what it left:
+# GPU_JOB_KEEP=1 keeps /tmp/gpu_job/out, so a build_target rerun with the same --work resumes
+# from its last finished stage with its datasets still there (job.log goes on).
 # JAX's compilation cache persists in $GPU_JOB_WORK/jax_cache (GPU_JOB_WORK: /tmp/gpu_job)
 # unless JAX_COMPILATION_CACHE_DIR is set. docs/reproduce.md has examples.
 set -uo pipefail
@@ -126,7 +129,8 @@ case "${1:-}" in
     { [ "${2:-}" = "--" ] && [ $# -ge 3 ]; } || { [ "${2:-}" = per-gpu ] && [ "${3:-}" = "--" ] && [ $# -ge 4 ]; } || usage
     kill -0 "$(cat "$WORK/pid" 2>/dev/null)" 2>/dev/null && { echo "a job is already running: poll it" >&2; exit 1; }
     install
-    rm -rf "$WORK/out" "$WORK/src"; mkdir -p "$WORK/out" "$WORK/src"
+    [ -n "${GPU_JOB_KEEP:-}" ] || rm -rf "$WORK/out"  # GPU_JOB_KEEP=1: resume a build in place, datasets kept
+    rm -rf "$WORK/src"; mkdir -p "$WORK/out" "$WORK/src"
     # The job runs in its own copy of the tree: every call of the device tool copies the working
     # tree afresh, and a job reading the tree it replaces can find a package half there.
     tar cf - --exclude=./.git --exclude=./.whl . | tar xf - -C "$WORK/src" \

@@ -114,3 +114,22 @@ def test_start_runs_the_job_from_its_own_copy_of_the_tree(tmp_path):
         subprocess.run(["sleep", "0.1"])
     assert (work / "out" / "seen.txt").read_text() == "the tree at start"
     assert "== exit 0" in (work / "out" / "job.log").read_text()
+
+
+@pytest.mark.skipif(shutil.which("bash") is None or shutil.which("tar") is None, reason="needs bash and tar")
+def test_start_empties_the_output_folder_unless_told_to_keep_it(tmp_path):
+    """GPU_JOB_KEEP=1 lets a failed build start again in place, its datasets still there."""
+    work = tmp_path / "work"
+    (work / "out" / "build").mkdir(parents=True)
+    (work / "out" / "build" / "demos").write_text("collected")
+    for keep, survives in (("1", True), ("", False)):
+        env = dict(os.environ, GPU_JOB_WORK=str(work), GPU_JOB_SITE_READY="1", GPU_JOB_START_WAIT="0", GPU_JOB_KEEP=keep)
+        r = subprocess.run(["bash", str(SCRIPT), "start", "--", "true"], env=env, capture_output=True, text=True,
+                           timeout=60)
+        assert r.returncode == 0, r.stderr
+        assert (work / "out" / "build" / "demos").exists() == survives
+        pid = int((work / "pid").read_text())
+        for _ in range(300):  # the next start refuses while a job runs
+            if not Path(f"/proc/{pid}").exists():
+                break
+            subprocess.run(["sleep", "0.1"])
