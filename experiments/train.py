@@ -79,9 +79,9 @@ flags.DEFINE_integer("seq_multiple", training.TrainConfig.seq_multiple, "--model
 flags.DEFINE_integer("image_shift", 0, "Random-shift image augmentation, pixels (0: off).")
 flags.DEFINE_integer("log_every", 200, "Steps between log lines.")
 flags.DEFINE_integer("ckpt_every", 2000, "Steps between training-state checkpoints.")
-flags.DEFINE_integer("d_model", 256, "Decoder width.")
-flags.DEFINE_integer("n_layers", 8, "Decoder layers.")
-flags.DEFINE_integer("patch_size", 8, "ViT patch size.")
+flags.DEFINE_integer("d_model", vla.VLAConfig.d_model, "Decoder width.")
+flags.DEFINE_integer("n_layers", vla.VLAConfig.n_layers, "Decoder layers.")
+flags.DEFINE_integer("patch_size", vla.VLAConfig.patch_size, "ViT patch size.")
 flags.DEFINE_integer("devices", 1, "Local devices to train over, data parallel (0: all of them); --batch_size must "
                      "be a multiple.")
 flags.DEFINE_integer("seed", 0, "Fixes the initialisation and the minibatch order: the same seed and data give the "
