@@ -91,12 +91,18 @@ def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_
     assert not any(n.startswith(("b/vla1", "b/vla3", "b/demos", "b/fresh_demos", "gpu0/trace")) for n in names)
 
 
-@pytest.mark.skipif(shutil.which("bash") is None or shutil.which("tar") is None, reason="needs bash and tar")
-def test_start_runs_the_job_from_its_own_copy_of_the_tree(tmp_path):
-    """Each device call replaces the working tree; a background job must not see that happen."""
+def _small_repo(tmp_path):
+    """A tree holding gpu_job.sh alone: `start` copies the tree its script is in."""
     repo = tmp_path / "repo"
     (repo / "experiments").mkdir(parents=True)
     shutil.copy(SCRIPT, repo / "experiments" / "gpu_job.sh")
+    return repo
+
+
+@pytest.mark.skipif(shutil.which("bash") is None or shutil.which("tar") is None, reason="needs bash and tar")
+def test_start_runs_the_job_from_its_own_copy_of_the_tree(tmp_path):
+    """Each device call replaces the working tree; a background job must not see that happen."""
+    repo = _small_repo(tmp_path)
     (repo / "pkg.txt").write_text("the tree at start")
     (repo / "go").touch()
     work = tmp_path / "work"
@@ -122,9 +128,10 @@ def test_start_empties_the_output_folder_unless_told_to_keep_it(tmp_path):
     work = tmp_path / "work"
     (work / "out" / "build").mkdir(parents=True)
     (work / "out" / "build" / "demos").write_text("collected")
+    script = _small_repo(tmp_path) / "experiments" / "gpu_job.sh"
     for keep, survives in (("1", True), ("", False)):
         env = dict(os.environ, GPU_JOB_WORK=str(work), GPU_JOB_SITE_READY="1", GPU_JOB_START_WAIT="0", GPU_JOB_KEEP=keep)
-        r = subprocess.run(["bash", str(SCRIPT), "start", "--", "true"], env=env, capture_output=True, text=True,
+        r = subprocess.run(["bash", str(script), "start", "--", "true"], env=env, capture_output=True, text=True,
                            timeout=60)
         assert r.returncode == 0, r.stderr
         assert (work / "out" / "build" / "demos").exists() == survives
