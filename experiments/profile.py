@@ -32,6 +32,9 @@ the draft rounds' loop and the budget's conditionals recorded into command buffe
 process-wide XLA_FLAGS would also impose on the physics program. --nodevice_loops compiles
 them with XLA's default command buffers (the comparison). --compiler_options adds per-program
 XLA options to those programs alone (say, how command buffers are updated between calls).
+--fixed_buffers times `act` and `ar` through `heisd_jax.fixed_buffers.FixedBufferStep`: their
+inputs, carried state and results in device buffers that keep their addresses from call to
+call, so XLA need not update their CUDA graphs between calls (the other parts as always).
 """
 
 from __future__ import annotations
@@ -50,6 +53,7 @@ import numpy as np
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import hybrid, results_io, retrieval, spec_decode as sd, target_model, timing, vla, xla_options
+from heisd_jax.fixed_buffers import FixedBufferStep
 from heisd_jax.harness import methods, vla_policy
 from experiments import cli
 
@@ -70,6 +74,8 @@ flags.DEFINE_bool("device_loops", True, "Compile act and every decode part with 
 flags.DEFINE_string("compiler_options", "", "More per-program XLA options for act and every decode part (not the env "
                     "step), key=value,...: e.g. xla_gpu_command_buffer_update_mode=<a mode the installed XLA has>, to "
                     "time act with graphs that are not updated between calls. Checked by a one-element compile first.")
+flags.DEFINE_bool("fixed_buffers", False, "Time act and AR on inputs, carried state and results kept at fixed device "
+                  "addresses between calls (heisd_jax.fixed_buffers.FixedBufferStep), as a control loop can call them.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -133,7 +139,8 @@ def main(argv):
     meta = policy.meta
     hcfg = meta.get("hcfg")
     jit = functools.partial(jax.jit, compiler_options=options) if options else jax.jit
-    fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method, jit)  # HeiSD where no option beats AR
+    name = "ar" if meta.get("runs_as_ar") else FLAGS.method  # HeiSD where no option beats AR
+    fns = component_fns(meta, name, jit)
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params
@@ -143,9 +150,20 @@ def main(argv):
     act_keys = jnp.zeros((FLAGS.batch, 2), jnp.uint32)
     gidx = jnp.asarray(env.global_index, jnp.int32)
 
+    act_step = ar_step = None
+    if FLAGS.fixed_buffers:
+        def act_on(p, inputs, carry):
+            states, keys = inputs
+            actions, carry, stats = policy.act(p, states, carry, keys)
+            return (actions, stats), carry
+        act_step = FixedBufferStep(act_on, params, (states, act_keys), pstate, jit)
+        ar = component_fns(meta, name, jit=lambda fn: fn)["ar"]  # jitted by the step, with its options
+        ar_step = FixedBufferStep(lambda p, obs, carry: (ar(p, obs), carry), params,
+                                  vla_policy.observation(states), (), jit)
+
     def parts(states, pstate):
         obs = vla_policy.observation(states)
-        out = {"ar": (fns["ar"], params, obs), "prefill": (fns["prefill"], params, obs)}
+        out = {"ar": (ar_step, obs) if ar_step else (fns["ar"], params, obs), "prefill": (fns["prefill"], params, obs)}
         if "start" in fns:
             s = jax.block_until_ready(fns["start"](params, obs))
             tree, sel = jax.block_until_ready(fns["draft_round"](params, s))
@@ -162,8 +180,13 @@ def main(argv):
     t0 = time.perf_counter()
     for fn, *args in parts(states, pstate).values():
         jax.block_until_ready(fn(*args))
-    actions, _, _ = jax.block_until_ready(act(params, states, pstate, act_keys))
-    jax.block_until_ready(step(states, actions))
+    if act_step:
+        actions, _ = jax.block_until_ready(act_step((states, act_keys)))
+        jax.block_until_ready(step(states, actions))
+        act_step.reset(pstate)  # the timed loop starts from the same state as without fixed buffers
+    else:
+        actions, _, _ = jax.block_until_ready(act(params, states, pstate, act_keys))
+        jax.block_until_ready(step(states, actions))
     print(f"compiled in {time.perf_counter() - t0:.0f}s on {jax.devices()[0].device_kind}", flush=True)
 
     times: dict[str, list[float]] = {}
@@ -173,7 +196,11 @@ def main(argv):
         for k, (fn, *args) in parts(states, pstate).items():
             times.setdefault(k, []).append(timing.timed(lambda: fn(*args))[1])
         running = np.asarray(~states.done, np.float32)
-        (actions, pstate, stats), dt = timing.timed(lambda: act(params, states, pstate, act_keys))
+        if act_step:  # the results live in its buffers until its next call, which comes after their last use
+            (actions, stats), dt = timing.timed(lambda: act_step((states, act_keys)))
+            pstate = act_step.carry
+        else:
+            (actions, pstate, stats), dt = timing.timed(lambda: act(params, states, pstate, act_keys))
         times.setdefault("act", []).append(dt)
         for k, v in stats.items():
             totals[k] = totals.get(k, 0.0) + float((np.asarray(v) * running).sum())
@@ -181,11 +208,15 @@ def main(argv):
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
     kernels, gaps = {}, {}
-    calls = {"act": (act, (params, states, pstate, act_keys)),
-             "ar": (fns["ar"], (params, vla_policy.observation(states))), "env_step": (step, (states, actions))}
+    if act_step:  # out of the step's buffers, which its traced calls below reuse
+        actions, pstate = jnp.copy(actions), jax.tree.map(jnp.copy, pstate)
+    obs = vla_policy.observation(states)
+    calls = {"act": (act, (params, states, pstate, act_keys)), "ar": (fns["ar"], (params, obs)),
+             "env_step": (step, (states, actions))}
+    traced = {**calls, **({"act": (act_step, ((states, act_keys),)), "ar": (ar_step, (obs,))} if act_step else {})}
     for name, (fn, args) in calls.items():  # after the timed loop, so tracing slows no timed call
         if FLAGS.trace_dir:
-            path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
+            path = timing.trace_calls(lambda: traced[name][0](*traced[name][1]), 3, Path(FLAGS.trace_dir) / name)
             kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
             gaps[name] = timing.device_gaps(path, top=FLAGS.top) if path else {}
         if FLAGS.hlo_dir:
@@ -239,6 +270,7 @@ def main(argv):
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "device_loops": FLAGS.device_loops,
+                                                 "fixed_buffers": FLAGS.fixed_buffers,
                                                  "compiler_options": options, "median_ms": med,
                                                  "per_action": per_action, "breakdown_ms": breakdown,
                                                  "speedup_vs_ar": speedup,
