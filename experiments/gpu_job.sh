@@ -28,8 +28,8 @@
 # names as a literal $OUT (write \$OUT): $OUT itself in the foreground; for `start`, which
 # returns at once and leaves the job running in its own process session across calls of at
 # most 10 minutes, /tmp/gpu_job/out (emptied by each `start`: unpack what `poll` brought back
-# first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results.tar.part-* (15 MiB
-# parts; unpack with `cat results.tar.part-* | tar x`): the PATHs given (relative to it; one not
+# first, and carry what a next job needs in the tree), which `poll` packs into $OUT/results-STAMP.tar.part-* (15
+# MiB parts, STAMP the UTC time of packing; unpack with `cat results-STAMP.tar.part-* | tar x`): the PATHs given (relative to it; one not
 # there yet is named and skipped), each build_target work folder's finished stack (build.json,
 # logs, the latest complete vla*, drafter, datastore, eval_ar*.json) and every small result file
 # (*.json, *.json.gz, *.log, *.png, *.txt under 2 MB, outside datasets and checkpoints), so a
@@ -95,8 +95,12 @@ pack() {  # the PATHs given and a build's finished stack; with neither, everythi
     for f in $small; do items+=("${f#./}"); done
   fi
   [ ${#items[@]} -eq 0 ] && return 0
+  # Named by the time of packing: a local folder that already holds an earlier call's parts
+  # (the device tool may reuse one) cannot mix them into this archive.
+  local name; name=results-$(date -u +%Y%m%dT%H%M%S).tar
   (cd "$d" && printf '%s\n' "${items[@]}" | awk '!seen[$0]++' | tar cf - --files-from=- --ignore-failed-read) \
-    | split -b 15M - "$OUT/results.tar.part-"
+    | split -b 15M - "$OUT/$name.part-"
+  echo "packed: $name.part-* (cat $name.part-* | tar x)"
 }
 
 case "${1:-}" in

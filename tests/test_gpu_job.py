@@ -83,7 +83,10 @@ def test_poll_packs_named_and_small_result_files_and_the_builds_newest_finished_
                        capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert "ENDED" in r.stdout and "pack: no missing.json" in r.stdout
-    parts = sorted((tmp_path / "back").glob("results.tar.part-*"))
+    (tmp_path / "back" / "results.tar.part-zz").write_bytes(b"stale")  # an earlier call's part in the same folder
+    parts = sorted((tmp_path / "back").glob("results-*.tar.part-*"))
+    assert parts and len({p.name.split(".part-")[0] for p in parts}) == 1  # one archive, named in the log
+    assert f"packed: {parts[0].name.split('.part-')[0]}.part-*" in r.stdout
     with tarfile.open(fileobj=io.BytesIO(b"".join(p.read_bytes() for p in parts))) as tar:
         names = {n.rstrip("/") for n in tar.getnames()}
     assert {"profile.json", "b/build.json", "b/logs/train1.log", "b/vla2/0/params", "b/eval_ar_fresh.json", "job.log",
