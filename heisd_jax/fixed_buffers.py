@@ -18,7 +18,9 @@ buffer may still move between calls, unless XLA is told to keep it fixed
 (`xla_gpu_command_buffer_update_mode=SKIP_TEMP`).
 
 It computes what `fn` computes. The results it returns live in the slots: they are valid
-until the next call, which reuses their buffers (copy what must outlive it).
+until the next call, which reuses their buffers (copy what must outlive it). A buffer that
+something outside JAX still views at the next call (on CPU, `np.asarray` of a result is such
+a view) is not reused: JAX copies instead, the values stay right, and that slot moves.
 """
 
 from __future__ import annotations
