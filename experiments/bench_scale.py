@@ -8,7 +8,8 @@ vision tower alone (the prompt's embeddings: what of the prefill the decoder doe
 one cached token; a verification pass of T tokens under a causal mask; the prefill with T
 candidate tokens appended; one drafter pass over T tokens), the median wall time of a jitted
 call and (--in_graph) its marginal cost inside a compiled loop, which a decode loop pays per
-pass without the call's dispatch, the bytes it must read (weights it touches, and the KV cache it attends over) and the
+pass without the call's dispatch, the seconds of its first call (its compile, or its load from
+JAX's compilation cache, and one run: what a layout or an XLA flag costs to compile), the bytes it must read (weights it touches, and the KV cache it attends over) and the
 FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
 device's peak (`PEAKS`; H100 SXM and H200: bf16 dense 989 TFLOP/s, HBM 3.35 / 4.8 TB/s).
 Inputs are zeros and the cache is full length: costs do not depend on values.
@@ -155,9 +156,10 @@ def main(argv):
             if FLAGS.passes and kind not in FLAGS.passes:
                 continue
             fn = lambda piece=piece, args=args: jitted[piece](*args)  # noqa: E731
+            first_s = timing.timed(fn)[1]  # compile (or a compilation-cache load) and one run
             ms = 1e3 * timing.median_seconds(fn, FLAGS.reps)
             nbytes, flops = pass_cost(cfg, piece, b, t)
-            row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "bytes": nbytes, "flops": flops,
+            row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "first_call_s": first_s, "bytes": nbytes, "flops": flops,
                    "bandwidth_TBps": nbytes / ms / 1e9, "TFLOPps": flops / ms / 1e9}
             if FLAGS.in_graph:
                 row["loop_ms"] = timing.in_graph_ms(pieces[piece], args, n=(1, 4), reps=3)
@@ -176,7 +178,7 @@ def main(argv):
             if "loop_ms" in row:
                 extra += f"; in a loop {row['loop_ms']:.3f} ms" + (f" ({row['loop_x_roofline']:.2f}x)" if bw else "")
             print(f"B={b:<4} {kind:<14} {ms:9.3f} ms  {row['bandwidth_TBps']:6.2f} TB/s  {row['TFLOPps']:7.1f} TFLOP/s"
-                  + extra, flush=True)
+                  + extra + f"; first call {first_s:.1f} s", flush=True)
             for line, summary in row.get("kernels", {}).items():
                 print(f"    kernels, {line}: {summary['total_ms']:.3f} ms per call, {summary['count']} events")
                 for kname, kms in summary["top"]:
