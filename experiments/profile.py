@@ -35,6 +35,8 @@ XLA options to those programs alone (say, how command buffers are updated betwee
 --fixed_buffers times `act` and `ar` through `heisd_jax.fixed_buffers.FixedBufferStep`: their
 inputs, carried state and results in device buffers that keep their addresses from call to
 call, so XLA need not update their CUDA graphs between calls (the other parts as always).
+--parts names the decode parts timed beside act and AR (default all; `--parts=` none, which at
+a 7B target's size saves minutes of compiling when act's own time is the question).
 """
 
 from __future__ import annotations
@@ -74,6 +76,10 @@ flags.DEFINE_bool("device_loops", True, "Compile act and every decode part with 
 flags.DEFINE_string("compiler_options", "", "More per-program XLA options for act and every decode part (not the env "
                     "step), key=value,...: e.g. xla_gpu_command_buffer_update_mode=<a mode the installed XLA has>, to "
                     "time act with graphs that are not updated between calls. Checked by a one-element compile first.")
+PARTS = ("prefill", "prefill+cand", "retrieval", "draft_round", "verify_round")
+flags.DEFINE_list("parts", list(PARTS), f"Decode parts timed beside act, AR and the env step, of {list(PARTS)} (those "
+                  "the method has); empty: none, which compiles two programs of the decode instead of up to eight (at "
+                  "a 7B target's size, minutes).")
 flags.DEFINE_bool("fixed_buffers", False, "Time act and AR on inputs, carried state and results kept at fixed device "
                   "addresses between calls (heisd_jax.fixed_buffers.FixedBufferStep), as a control loop can call them.")
 cli.define_paths("checkpoint", "drafter", "datastore")
@@ -121,6 +127,9 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if FLAGS.batch < 1 or FLAGS.steps < 1:
         raise app.UsageError("--batch and --steps must be >= 1")
+    if unknown := sorted(set(FLAGS.parts) - set(PARTS)):
+        raise app.UsageError(f"--parts: unknown {unknown}; valid parts: {list(PARTS)} (or none: --parts=)")
+    want = set(FLAGS.parts)
     options = dict(xla_options.DEVICE_LOOPS) if FLAGS.device_loops else {}
     try:
         extra = xla_options.parse(FLAGS.compiler_options)
@@ -163,18 +172,20 @@ def main(argv):
 
     def parts(states, pstate):
         obs = vla_policy.observation(states)
-        out = {"ar": (ar_step, obs) if ar_step else (fns["ar"], params, obs), "prefill": (fns["prefill"], params, obs)}
-        if "start" in fns:
+        out = {"ar": (ar_step, obs) if ar_step else (fns["ar"], params, obs)}
+        if "prefill" in want:
+            out["prefill"] = (fns["prefill"], params, obs)
+        if "start" in fns and want & {"draft_round", "verify_round"}:
             s = jax.block_until_ready(fns["start"](params, obs))
             tree, sel = jax.block_until_ready(fns["draft_round"](params, s))
             out.update(draft_round=(fns["draft_round"], params, s), verify_round=(fns["verify_round"], params, s, tree, sel))
-        if hcfg is not None:
+        if hcfg is not None and want & {"retrieval", "prefill+cand"}:
             k = retrieval.make_keys(meta["key_spec"], meta["tok"], pstate.prev_actions, obs.proprio)
             task = gidx[states.info.task_id]
             cand = jax.block_until_ready(fns["retrieval"](params, k, task))[0]
             cand = jnp.concatenate([cand, pstate.recent], 1)  # the env's recent actions are verified too
             out.update(retrieval=(fns["retrieval"], params, k, task), **{"prefill+cand": (fns["prefill+cand"], params, obs, cand)})
-        return out
+        return {k: v for k, v in out.items() if k == "ar" or k in want}
 
     # Compile everything once (warm-up excluded from the timings).
     t0 = time.perf_counter()
@@ -231,6 +242,8 @@ def main(argv):
     auto_budget = any(k.startswith("budget_") for k in per_action)
     if auto_budget:  # its rounds mix single-token passes and trees: rounds x (draft + verify) does not price them
         print("  (no per-action breakdown under budget=auto: its rounds are of several kinds)")
+    elif FLAGS.method != "ar" and not {"prefill", "draft_round", "verify_round"} <= want:
+        print("  (no per-action breakdown: --parts leaves out prefill, draft_round or verify_round)")
     elif FLAGS.method != "ar":
         rounds = per_action.get("rounds", 0.0)
         verified = per_action.get("retrieval_verified", 0.0)
@@ -270,7 +283,7 @@ def main(argv):
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "device_loops": FLAGS.device_loops,
-                                                 "fixed_buffers": FLAGS.fixed_buffers,
+                                                 "fixed_buffers": FLAGS.fixed_buffers, "parts": sorted(want),
                                                  "compiler_options": options, "median_ms": med,
                                                  "per_action": per_action, "breakdown_ms": breakdown,
                                                  "speedup_vs_ar": speedup,

@@ -47,6 +47,7 @@ CASES = [
     ("studies.expert_gain", ["--gains=1.2,0"], "--gains must be > 0"),
     ("profile", ["--compiler_options=xla_bogus=1"], "No such compile option: 'xla_bogus'"),
     ("profile", ["--compiler_options=xla_gpu_deterministic_ops"], "is not key=value"),
+    ("profile", ["--parts=prefill,verify"], "--parts: unknown ['verify']; valid parts: ['prefill', 'prefill+cand'"),
 ]
 
 
