@@ -11,7 +11,8 @@ call, so every call pays that update for a graph of ~1,000 commands at a 7B targ
 
 `FixedBufferStep` keeps the step's inputs, its carried state and its results in one set of
 device buffers ("slots"). Every call donates the slots and aliases them to the outputs, so a
-buffer keeps its address: a small program copies the call's new inputs into the input slots,
+buffer keeps its address: a small program copies the call's new inputs (those the step reads:
+a simulator state's other fields are left out) into the input slots,
 then the step reads the slots and writes its carried state and results back into them. The
 large program then sees the same argument and result addresses on every call; its temporary
 buffer may still move between calls, unless XLA is told to keep it fixed
@@ -28,9 +29,22 @@ from __future__ import annotations
 from typing import Any, Callable
 
 import jax
+import jax.extend.core as jcore
 import jax.numpy as jnp
 
 Step = Callable[[Any, Any, Any], tuple[Any, Any]]  # fn(params, inputs, carry) -> (results, carry)
+
+
+def read_inputs(closed: jcore.ClosedJaxpr) -> list[bool]:
+    """Which of a traced program's inputs it reads: an equation counts as reading all its
+    operands if anything reads one of its results or it has effects (a loop's or a branch's
+    body counts whole, so the answer may say more is read than is, never less)."""
+    jaxpr = closed.jaxpr
+    live = {v for v in jaxpr.outvars if isinstance(v, jcore.Var)}
+    for eqn in reversed(jaxpr.eqns):
+        if eqn.effects or any(v in live for v in eqn.outvars if not isinstance(v, jcore.DropVar)):
+            live.update(v for v in eqn.invars if isinstance(v, jcore.Var))
+    return [v in live for v in jaxpr.invars]
 
 
 def _put(slots, inputs):
@@ -49,17 +63,24 @@ class FixedBufferStep:
     calls anyway."""
 
     def __init__(self, fn: Step, params, inputs, carry, jit=jax.jit):
-        results = jax.eval_shape(fn, params, inputs, carry)[0]
+        closed, shapes = jax.make_jaxpr(fn, return_shape=True)(params, inputs, carry)
+        leaves = jax.tree.leaves(inputs)
+        n_params = len(jax.tree.leaves(params))
+        # Only the inputs the step reads get a slot and are copied per call; the others are
+        # zeros inside the program, which XLA drops.
+        self._read = read_inputs(closed)[n_params:n_params + len(leaves)]
         self.params = params
         self._structure = jax.tree.structure(inputs)
-        self._avals = [(x.shape, x.dtype) for x in jax.tree.leaves(inputs)]
-        self._slots = (jax.tree.map(jnp.copy, inputs), jax.tree.map(jnp.copy, carry),
-                       jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), results))
+        self._avals = [(x.shape, x.dtype) for x in leaves]
+        self._slots = ([jnp.copy(x) for x, r in zip(leaves, self._read) if r], jax.tree.map(jnp.copy, carry),
+                       jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes[0]))
 
         def run(params, slots):
-            inputs, carry, _ = slots
-            results, carry = fn(params, inputs, carry)
-            return inputs, carry, results
+            read, carry, _ = slots
+            it = iter(read)
+            leaves = [next(it) if r else jnp.zeros(*a) for r, a in zip(self._read, self._avals)]
+            results, carry = fn(params, jax.tree.unflatten(self._structure, leaves), carry)
+            return read, carry, results
 
         # keep_unused: an argument jit would otherwise drop (the last call's results, an input
         # the step does not read) is still donated and so keeps its buffer as an output.
@@ -78,7 +99,8 @@ class FixedBufferStep:
             bad = next(i for i, (a, b) in enumerate(zip(avals, self._avals)) if a != b)
             raise ValueError(f"input leaf {bad} has shape and dtype {avals[bad]}, the step was built for "
                              f"{self._avals[bad]}")
-        self._slots = self._run(self.params, self._put(self._slots, inputs))
+        read = [x for x, r in zip(jax.tree.leaves(inputs), self._read) if r]
+        self._slots = self._run(self.params, self._put(self._slots, read))
         return self._slots[2]
 
     def reset(self, carry) -> None:

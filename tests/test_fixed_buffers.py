@@ -48,3 +48,16 @@ def test_inputs_of_another_structure_or_shape_are_refused():
         fixed((jnp.zeros((3, 4)), key))
     with pytest.raises(ValueError, match="leaf 1"):
         fixed((obs, key.astype(jnp.float32)))
+
+
+def test_only_the_inputs_the_step_reads_get_a_slot():
+    """A simulator state carries many fields the decode step never reads: they are neither
+    slotted nor copied per call, and the step still sees their shapes."""
+    def partial_step(params, inputs, carry):
+        return {"y": inputs["read"] * params + inputs["ignored"].shape[0]}, carry + 1
+
+    inputs = {"read": jnp.arange(3.0), "ignored": jnp.ones((5, 2))}
+    fixed = FixedBufferStep(partial_step, jnp.float32(2.0), inputs, jnp.zeros((), jnp.int32))
+    assert len(fixed.buffer_addresses()) == 3  # "read", the carry, the result
+    out = fixed({"read": jnp.full(3, 4.0), "ignored": jnp.zeros((5, 2))})
+    np.testing.assert_array_equal(out["y"], np.full(3, 13.0))
