@@ -6,14 +6,14 @@ compares the addresses of the buffers the graph reads and writes with the last c
 re-records the graph's commands that touch a buffer that moved (`command_buffer::update`),
 which the next graph launch then uploads. A control loop that calls the decode step once per
 control step hands it new observation and state buffers and gets new result buffers on every
-call, so every call pays that update for a graph of ~1,000 commands at a 7B target's size
-(docs/scale.md traces it).
+call, so every call may pay that update for graphs of ~1,000 commands at a 7B target's size
+(docs/scale.md: how much of a call's time it is, `experiments/profile.py --fixed_buffers`
+measures).
 
 `FixedBufferStep` keeps the step's inputs, its carried state and its results in one set of
 device buffers ("slots"). Every call donates the slots and aliases them to the outputs, so a
 buffer keeps its address: a small program copies the call's new inputs (those the step reads:
-a simulator state's other fields are left out) into the input slots,
-then the step reads the slots and writes its carried state and results back into them. The
+a simulator state's other fields are left out) into the input slots, then the step reads the slots and writes its carried state and results back into them. The
 large program then sees the same argument and result addresses on every call; its temporary
 buffer may still move between calls, unless XLA is told to keep it fixed
 (`xla_gpu_command_buffer_update_mode=SKIP_TEMP`).
