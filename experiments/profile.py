@@ -148,8 +148,8 @@ def main(argv):
     meta = policy.meta
     hcfg = meta.get("hcfg")
     jit = functools.partial(jax.jit, compiler_options=options) if options else jax.jit
-    name = "ar" if meta.get("runs_as_ar") else FLAGS.method  # HeiSD where no option beats AR
-    fns = component_fns(meta, name, jit)
+    decoder = "ar" if meta.get("runs_as_ar") else FLAGS.method  # HeiSD where no option beats AR
+    fns = component_fns(meta, decoder, jit)
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params
@@ -166,7 +166,7 @@ def main(argv):
             actions, carry, stats = policy.act(p, states, carry, keys)
             return (actions, stats), carry
         act_step = FixedBufferStep(act_on, params, (states, act_keys), pstate, jit)
-        ar = component_fns(meta, name, jit=lambda fn: fn)["ar"]  # jitted by the step, with its options
+        ar = component_fns(meta, decoder, jit=lambda fn: fn)["ar"]  # jitted by the step, with its options
         ar_step = FixedBufferStep(lambda p, obs, carry: (ar(p, obs), carry), params,
                                   vla_policy.observation(states), (), jit)
 
