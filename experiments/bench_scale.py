@@ -9,8 +9,8 @@ one cached token; a verification pass of T tokens under a causal mask; the prefi
 candidate tokens appended; one drafter pass over T tokens), the median wall time of a jitted
 call and (--in_graph) its marginal cost inside a compiled loop, which a decode loop pays per
 pass without the call's dispatch, the seconds of its first call (its compile, or its load from
-JAX's compilation cache, and one run: what a layout or an XLA flag costs to compile), the bytes it must read (weights it touches, and the KV cache it attends over) and the
-FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
+JAX's compilation cache, and one run: what a layout or an XLA flag costs to compile), the
+bytes it must read (weights it touches, and the KV cache it attends over) and the FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
 device's peak (`PEAKS`; H100 SXM and H200: bf16 dense 989 TFLOP/s, HBM 3.35 / 4.8 TB/s).
 Inputs are zeros and the cache is full length: costs do not depend on values.
 """

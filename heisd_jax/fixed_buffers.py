@@ -13,8 +13,8 @@ measures).
 `FixedBufferStep` keeps the step's inputs, its carried state and its results in one set of
 device buffers ("slots"). Every call donates the slots and aliases them to the outputs, so a
 buffer keeps its address: a small program copies the call's new inputs (those the step reads:
-a simulator state's other fields are left out) into the input slots, then the step reads the slots and writes its carried state and results back into them. The
-large program then sees the same argument and result addresses on every call; its temporary
+a simulator state's other fields are left out) into the input slots, then the step reads the
+slots and writes its carried state and results back into them. The large program then sees the same argument and result addresses on every call; its temporary
 buffer may still move between calls, unless XLA is told to keep it fixed
 (`xla_gpu_command_buffer_update_mode=SKIP_TEMP`).
 
@@ -91,15 +91,15 @@ class FixedBufferStep:
     def __call__(self, inputs):
         """Runs the step on `inputs` (arrays in the example's structure, shapes and dtypes);
         returns its results, which live in the slots until the next call."""
-        if jax.tree.structure(inputs) != self._structure:
-            raise ValueError(f"inputs have structure {jax.tree.structure(inputs)}, the step was built for "
-                             f"{self._structure}")
-        avals = [(x.shape, x.dtype) for x in jax.tree.leaves(inputs)]
+        leaves, structure = jax.tree.flatten(inputs)  # once: this runs at every control step
+        if structure != self._structure:
+            raise ValueError(f"inputs have structure {structure}, the step was built for {self._structure}")
+        avals = [(x.shape, x.dtype) for x in leaves]
         if avals != self._avals:
             bad = next(i for i, (a, b) in enumerate(zip(avals, self._avals)) if a != b)
             raise ValueError(f"input leaf {bad} has shape and dtype {avals[bad]}, the step was built for "
                              f"{self._avals[bad]}")
-        read = [x for x, r in zip(jax.tree.leaves(inputs), self._read) if r]
+        read = [x for x, r in zip(leaves, self._read) if r]
         self._slots = self._run(self.params, self._put(self._slots, read))
         return self._slots[2]
 
