@@ -32,9 +32,6 @@ the draft rounds' loop and the budget's conditionals recorded into command buffe
 process-wide XLA_FLAGS would also impose on the physics program. --nodevice_loops compiles
 them with XLA's default command buffers (the comparison). --compiler_options adds per-program
 XLA options to those programs alone (say, how command buffers are updated between calls).
---fixed_buffers times `act` and `ar` through `heisd_jax.fixed_buffers.FixedBufferStep`: their
-inputs, carried state and results in device buffers that keep their addresses from call to
-call, so XLA need not update their CUDA graphs between calls (the other parts as always).
 --parts names the decode parts timed beside act and AR (default all; `--parts=` none, which at
 a 7B target's size saves minutes of compiling when act's own time is the question).
 """
@@ -55,7 +52,6 @@ import numpy as np
 from envs import tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import hybrid, results_io, retrieval, spec_decode as sd, target_model, timing, vla, xla_options
-from heisd_jax.fixed_buffers import FixedBufferStep
 from heisd_jax.harness import methods, vla_policy
 from experiments import cli
 
@@ -80,8 +76,6 @@ PARTS = ("prefill", "prefill+cand", "retrieval", "draft_round", "verify_round")
 flags.DEFINE_list("parts", list(PARTS), f"Decode parts timed beside act, AR and the env step, of {list(PARTS)} (those "
                   "the method has); empty: none, which compiles two programs of the decode instead of up to eight (at "
                   "a 7B target's size, minutes).")
-flags.DEFINE_bool("fixed_buffers", False, "Time act and AR on inputs, carried state and results kept at fixed device "
-                  "addresses between calls (heisd_jax.fixed_buffers.FixedBufferStep), as a control loop can call them.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_string("out", "", "Optional JSON output.")
 
@@ -159,20 +153,9 @@ def main(argv):
     act_keys = jnp.zeros((FLAGS.batch, 2), jnp.uint32)
     gidx = jnp.asarray(env.global_index, jnp.int32)
 
-    act_step = ar_step = None
-    if FLAGS.fixed_buffers:
-        def act_on(p, inputs, carry):
-            states, keys = inputs
-            actions, carry, stats = policy.act(p, states, carry, keys)
-            return (actions, stats), carry
-        act_step = FixedBufferStep(act_on, params, (states, act_keys), pstate, jit)
-        ar = component_fns(meta, decoder, jit=lambda fn: fn)["ar"]  # jitted by the step, with its options
-        ar_step = FixedBufferStep(lambda p, obs, carry: (ar(p, obs), carry), params,
-                                  vla_policy.observation(states), (), jit)
-
     def parts(states, pstate):
         obs = vla_policy.observation(states)
-        out = {"ar": (ar_step, obs) if ar_step else (fns["ar"], params, obs)}
+        out = {"ar": (fns["ar"], params, obs)}
         if "prefill" in want:
             out["prefill"] = (fns["prefill"], params, obs)
         if "start" in fns and want & {"draft_round", "verify_round"}:
@@ -191,13 +174,8 @@ def main(argv):
     t0 = time.perf_counter()
     for fn, *args in parts(states, pstate).values():
         jax.block_until_ready(fn(*args))
-    if act_step:
-        actions, _ = jax.block_until_ready(act_step((states, act_keys)))
-        jax.block_until_ready(step(states, actions))
-        act_step.reset(pstate)  # the timed loop starts from the same state as without fixed buffers
-    else:
-        actions, _, _ = jax.block_until_ready(act(params, states, pstate, act_keys))
-        jax.block_until_ready(step(states, actions))
+    actions, _, _ = jax.block_until_ready(act(params, states, pstate, act_keys))
+    jax.block_until_ready(step(states, actions))
     print(f"compiled in {time.perf_counter() - t0:.0f}s on {jax.devices()[0].device_kind}", flush=True)
 
     times: dict[str, list[float]] = {}
@@ -207,11 +185,7 @@ def main(argv):
         for k, (fn, *args) in parts(states, pstate).items():
             times.setdefault(k, []).append(timing.timed(lambda: fn(*args))[1])
         running = np.asarray(~states.done, np.float32)
-        if act_step:  # the results live in its buffers until its next call, which comes after their last use
-            (actions, stats), dt = timing.timed(lambda: act_step((states, act_keys)))
-            pstate = act_step.carry
-        else:
-            (actions, pstate, stats), dt = timing.timed(lambda: act(params, states, pstate, act_keys))
+        (actions, pstate, stats), dt = timing.timed(lambda: act(params, states, pstate, act_keys))
         times.setdefault("act", []).append(dt)
         for k, v in stats.items():
             totals[k] = totals.get(k, 0.0) + float((np.asarray(v) * running).sum())
@@ -219,15 +193,12 @@ def main(argv):
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
     kernels, gaps = {}, {}
-    if act_step:  # out of the step's buffers, which its traced calls below reuse
-        actions, pstate = jnp.copy(actions), jax.tree.map(jnp.copy, pstate)
     obs = vla_policy.observation(states)
     calls = {"act": (act, (params, states, pstate, act_keys)), "ar": (fns["ar"], (params, obs)),
              "env_step": (step, (states, actions))}
-    traced = {**calls, **({"act": (act_step, ((states, act_keys),)), "ar": (ar_step, (obs,))} if act_step else {})}
     for name, (fn, args) in calls.items():  # after the timed loop, so tracing slows no timed call
         if FLAGS.trace_dir:
-            path = timing.trace_calls(lambda: traced[name][0](*traced[name][1]), 3, Path(FLAGS.trace_dir) / name)
+            path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
             kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
             gaps[name] = timing.device_gaps(path, top=FLAGS.top) if path else {}
         if FLAGS.hlo_dir:
@@ -283,7 +254,7 @@ def main(argv):
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
                                                  "settings": settings, "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "device_loops": FLAGS.device_loops,
-                                                 "fixed_buffers": FLAGS.fixed_buffers, "parts": sorted(want),
+                                                 "parts": sorted(want),
                                                  "compiler_options": options, "median_ms": med,
                                                  "per_action": per_action, "breakdown_ms": breakdown,
                                                  "speedup_vs_ar": speedup,

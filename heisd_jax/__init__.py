@@ -10,8 +10,7 @@ Layers, arrows one way (tests/test_layers.py pins them):
   models (`vla`, `drafter`, `tokenizer`, `observation`, `scale`, `checkpoint`), the
   target-model interface (`target_model`), the decoders and their rules (`spec_decode`,
   `hybrid`, `acceptance`, `retrieval`, `kinematics`, `budget`, `cost_model`) and the
-  utilities (`sharding`, `timing`, `results_io`, `cache_dirs`, `rounded_products`, `xla_options`,
-  `fixed_buffers`);
+  utilities (`sharding`, `timing`, `results_io`, `cache_dirs`, `rounded_products`, `xla_options`);
 - `envs`, the simulation, which imports nothing of `heisd_jax`;
 - `heisd_jax.harness` above both: the methods, the evaluator, replay, training and the
   offline builders;

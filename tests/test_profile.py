@@ -49,18 +49,3 @@ def test_profiler_rejects_bad_settings_before_compiling():
     assert out.returncode != 0 and "total_tokens must be in 1..top_k*depth=8" in out.stderr
     out = _run(["--method=beam"])
     assert out.returncode != 0 and "heisd" in out.stderr
-
-
-@pytest.mark.slow  # two runs of the entry point, each compiling the method
-def test_fixed_buffers_time_the_same_trajectories(tmp_path):
-    """act and AR called on fixed device buffers compute what they compute on fresh ones: the
-    same closed-loop statistics, step for step."""
-    base = ["--method=heisd", "--settings=budget=fixed,top_k=4,depth=2,total_tokens=8", "--suites=goal", "--batch=2",
-            "--steps=4"]
-    runs = {}
-    for fixed in (False, True):
-        out = _run([*base, f"--fixed_buffers={fixed}", f"--out={tmp_path / f'{fixed}.json'}"])
-        assert out.returncode == 0, out.stderr[-3000:]
-        runs[fixed] = json.loads((tmp_path / f"{fixed}.json").read_text())
-    assert runs[True]["fixed_buffers"] and not runs[False]["fixed_buffers"]
-    assert runs[True]["per_action"] == runs[False]["per_action"]
