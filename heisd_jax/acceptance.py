@@ -4,10 +4,8 @@ Token-wise (each drafted token on its own, Spec-VLA): `strict` (the same bin: lo
 speculative decoding equals AR token for token) and `token_relaxed` (within `relax_bins`
 bins). Sequence-wise for whole retrieved actions (our design, docs/method.md):
 `seq_relaxed` bounds each token's bin distance and the weighted cumulative distance of the
-accepted prefix, and requires the gripper token to agree on open/closed; with `near_tie`
-it also accepts, at no distance, a token the target rates nearly as likely as its own choice
-(a near tie, which the target's greedy choice breaks by a hair). Verify-skip (the paper's)
-decides when a retrieved action is executed without a target pass.
+accepted prefix, and requires the gripper token to agree on open/closed. Verify-skip (the
+paper's) decides when a retrieved action is executed without a target pass.
 """
 
 from __future__ import annotations
@@ -43,13 +41,10 @@ class SeqRelaxedConfig:
     r_max: int = 9  # no token further than this from the target's bin
     r_seq: int = 24  # bound on the weighted cumulative bin distance of the accepted prefix
     weights: tuple[float, ...] = (1.0,) * ACTION_DIM
-    near_tie: float = 0.0  # a token whose logit is within this of the target's top one: accepted, distance 0 (0: off)
 
     def __post_init__(self):
         if not 0 <= self.r_max < N_BINS or self.r_seq < 0:
             raise ValueError(f"need 0 <= r_max < {N_BINS} and r_seq >= 0, got {self.r_max}, {self.r_seq}")
-        if not self.near_tie >= 0:
-            raise ValueError(f"near_tie is a logit margin, >= 0 (0: off), got {self.near_tie}")
         if len(self.weights) != ACTION_DIM or any(w < 0 for w in self.weights):
             raise ValueError(f"weights need {ACTION_DIM} non-negative entries, got {self.weights}")
 
@@ -58,26 +53,13 @@ def gripper_closed(bins: jnp.ndarray) -> jnp.ndarray:
     return bins >= N_BINS // 2
 
 
-def logit_gap(action_logits: jnp.ndarray, bins: jnp.ndarray) -> jnp.ndarray:
-    """How far below the target's top action logit each drafted bin's logit is: [...] >= 0,
-    from action logits [..., 256] and bins [...] (0..255)."""
-    lg = action_logits.astype(jnp.float32)
-    return jnp.max(lg, -1) - jnp.take_along_axis(lg, bins[..., None], -1)[..., 0]
-
-
-def seq_relaxed_length(draft_bins: jnp.ndarray, target_bins: jnp.ndarray, cfg: SeqRelaxedConfig,
-                       gap: jnp.ndarray | None = None) -> jnp.ndarray:
+def seq_relaxed_length(draft_bins: jnp.ndarray, target_bins: jnp.ndarray, cfg: SeqRelaxedConfig) -> jnp.ndarray:
     """Accepted prefix length [...] of a drafted action [..., 7] against the target's greedy
     bins [..., 7] (each conditioned on the draft prefix before it): the longest j with
     sum_{i<j} w_i |d_i - t_i| <= r_seq, every |d_i - t_i| <= r_max, and the gripper token
-    agreeing on open/closed. With `cfg.near_tie` > 0 and `gap` [..., 7] (`logit_gap` of the
-    drafted bins), a token within near_tie of the target's top logit is accepted and adds no
-    distance, however many bins it lies from the greedy one: the target is all but indifferent
-    between them (the gripper rule still holds)."""
+    agreeing on open/closed."""
     diff = jnp.abs(draft_bins - target_bins)
-    near = (gap <= cfg.near_tie) if (cfg.near_tie > 0 and gap is not None) else jnp.zeros(diff.shape, bool)
-    dist = jnp.where(near, 0, diff)
-    ok = ((diff <= cfg.r_max) | near) & (jnp.cumsum(dist * jnp.asarray(cfg.weights), -1) <= cfg.r_seq)
+    ok = (diff <= cfg.r_max) & (jnp.cumsum(diff * jnp.asarray(cfg.weights), -1) <= cfg.r_seq)
     grip = gripper_closed(draft_bins[..., GRIPPER_DIM]) == gripper_closed(target_bins[..., GRIPPER_DIM])
     ok = ok.at[..., GRIPPER_DIM].set(ok[..., GRIPPER_DIM] & grip)
     return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)
@@ -139,11 +121,11 @@ def may_repeat(cfg: SkipConfig, in_retrieval: jnp.ndarray, last_valid: jnp.ndarr
 
 
 def prefix_length(rule: str, relax_bins: int, seq: SeqRelaxedConfig, draft_bins: jnp.ndarray,
-                  target_bins: jnp.ndarray, gap: jnp.ndarray | None = None) -> jnp.ndarray:
+                  target_bins: jnp.ndarray) -> jnp.ndarray:
     """Accepted prefix length [...] of drafted actions [..., 7] against the target's greedy
     bins [..., 7] (token i's conditioned on the draft's tokens before it), under `rule`
-    (one of ACTION_RULES); `gap` (`logit_gap`) for seq_relaxed's near ties."""
+    (one of ACTION_RULES)."""
     if rule == "seq_relaxed":
-        return seq_relaxed_length(draft_bins, target_bins, seq, gap)
+        return seq_relaxed_length(draft_bins, target_bins, seq)
     ok = token_accepted(rule, relax_bins, draft_bins, target_bins)
     return jnp.sum(jnp.cumprod(ok.astype(jnp.int32), -1), -1)

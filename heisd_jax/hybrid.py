@@ -207,16 +207,10 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
         passes = 1.0 + verify_rows.astype(jnp.float32)
 
     first_id = cfg.first_action_id
-    first_logits, node_logits = vla.action_logits(cfg, logits), vla.action_logits(cfg, blogits)
-    greedy1 = jnp.argmax(first_logits, -1)  # [B] bins
-    node_greedy = jnp.argmax(node_logits, -1).reshape(b, n, c)
+    greedy1 = jnp.argmax(vla.action_logits(cfg, logits), -1)  # [B] bins
+    node_greedy = jnp.argmax(vla.action_logits(cfg, blogits), -1).reshape(b, n, c)
     target_bins = jnp.concatenate([jnp.broadcast_to(greedy1[:, None, None], (b, n, 1)), node_greedy], -1)
-    gap = None
-    if hcfg.acceptance == "seq_relaxed" and hcfg.seq.near_tie > 0:  # the target's logit of each candidate token
-        first = jnp.broadcast_to(first_logits[:, None], (b, n, first_logits.shape[-1]))
-        lg = jnp.concatenate([first[:, :, None], node_logits.reshape(b, n, c, -1)], 2)  # [B, N, 7, 256]
-        gap = rules.logit_gap(lg, cand - first_id)
-    length = rules.prefix_length(hcfg.acceptance, hcfg.relax_bins, hcfg.seq, cand - first_id, target_bins, gap)
+    length = rules.prefix_length(hcfg.acceptance, hcfg.relax_bins, hcfg.seq, cand - first_id, target_bins)
     length = jnp.where(cand_valid & verify_rows[:, None], length, 0)
     best = jnp.argmax(length, 1)
     acc = jnp.max(length, 1)  # [B] 0..7

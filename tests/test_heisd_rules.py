@@ -27,27 +27,6 @@ def test_seq_relaxed_accepts_within_budget_and_stops_at_the_right_index():
         acc.SeqRelaxedConfig(r_seq=-1)
 
 
-def test_near_tie_accepts_what_the_target_all_but_ties_at_no_distance():
-    t = jnp.array([100, 100, 100, 100, 100, 255, 255])  # the yaw (index 5) at one extreme
-    d = jnp.array([104, 100, 100, 100, 100, 0, 255])  # the candidate's yaw at the other
-    logits = jnp.zeros((7, 256)).at[jnp.arange(7), t].set(2.0)
-    logits = logits.at[5, 0].set(1.95).at[0, 104].set(1.0)  # yaw: a near tie; dim 0: no tie
-    gap = acc.logit_gap(logits, d)
-    np.testing.assert_allclose(np.asarray(gap), [1.0, 0, 0, 0, 0, 0.05, 0], atol=1e-6)
-    off = acc.SeqRelaxedConfig(r_max=9, r_seq=24)
-    on = acc.SeqRelaxedConfig(r_max=9, r_seq=24, near_tie=0.1)
-    assert int(acc.seq_relaxed_length(d, t, off, gap)) == 5  # 255 bins away: stops at the yaw
-    assert int(acc.seq_relaxed_length(d, t, on)) == 5  # no gaps given: the rule cannot apply
-    assert int(acc.seq_relaxed_length(d, t, on, gap)) == 7  # the near tie accepted, adding no distance
-    tight = acc.SeqRelaxedConfig(r_max=9, r_seq=3, near_tie=0.1)
-    assert int(acc.seq_relaxed_length(d, t, tight, gap)) == 0  # dim 0's 4 bins are no tie: they still count
-    assert int(acc.seq_relaxed_length(d, t, acc.SeqRelaxedConfig(r_max=9, r_seq=24, near_tie=0.01), gap)) == 5
-    grip = d.at[6].set(0)  # a near tie on the gripper does not open it: the open/closed rule holds
-    assert int(acc.seq_relaxed_length(grip, t, on, acc.logit_gap(logits.at[6, 0].set(2.0), grip))) == 6
-    with pytest.raises(ValueError, match="near_tie is a logit margin"):
-        acc.SeqRelaxedConfig(near_tie=-0.1)
-
-
 def test_verify_skip_is_bounded_and_only_in_retrieval_mode():
     cfg = acc.SkipConfig(eps=0.1, r_agree=2, n_agree=2, k_skip=2)
     b = 4

@@ -75,26 +75,6 @@ def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(tiny_hybri
     assert float(jnp.sum(st["target_passes"])) == 0 and float(jnp.sum(st["skipped"])) == B
 
 
-def test_near_tie_reads_the_target_logits_of_each_candidate_token(tiny_hybrid):
-    """With no bin distance allowed, seq_relaxed accepts only the target's own tokens; with any
-    margin a near tie, every candidate token is one, and only the gripper's open/closed rule
-    can stop a candidate."""
-    params, obs, ar_tokens = tiny_hybrid
-    cand, _ = candidates(ar_tokens, np.random.default_rng(3))
-    exact = dataclasses.replace(STRICT, acceptance="seq_relaxed", continuation="ar",
-                                seq=acceptance.SeqRelaxedConfig(r_max=0, r_seq=0))
-    args = (obs, cand, jnp.ones((B, 3), bool), jnp.ones((B,), bool), jnp.zeros((B,), bool))
-    _, st0 = _decode(params, CFG, exact, *args)
-    _, st_strict = _decode(params, CFG, dataclasses.replace(exact, acceptance="strict"), *args)
-    np.testing.assert_array_equal(np.asarray(st0["retrieval_accepted"]), np.asarray(st_strict["retrieval_accepted"]))
-    ties = dataclasses.replace(exact, seq=acceptance.SeqRelaxedConfig(r_max=0, r_seq=0, near_tie=1e9))
-    tokens, st = _decode(params, CFG, ties, *args)
-    acc, acc0 = np.asarray(st["retrieval_accepted"]), np.asarray(st0["retrieval_accepted"])
-    assert np.all(acc >= 6) and np.all(acc >= acc0) and np.any(acc > acc0), (acc, acc0)
-    for row in np.flatnonzero(acc == 7):  # accepted whole: one of its candidates, as it was
-        assert any(np.array_equal(np.asarray(tokens)[row], np.asarray(cand)[row, j]) for j in range(3))
-
-
 def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(tiny_hybrid):
     """A datastore holding each row's AR action under its own key: retrieval is perfect, so
     skipping would fire every step; it must stop after k_skip in a row, and only while in

@@ -205,8 +205,6 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                     "costs closed-loop success on our suites)."),
         "r_seq": _S("r_seq", "seq_relaxed: bound on the cumulative bin distance of the accepted prefix (the paper: "
                     "42)."),
-        "near_tie": _S("near_tie", "seq_relaxed: also accept, at no distance, a candidate token whose logit is "
-                       "within this of the target's top one (a near tie; 0: off)."),
     },
     acceptance.SkipConfig: {
         "enabled": _S("skip", "Verify-skip: a confident retrieval-mode row executes a candidate without a target "
