@@ -166,6 +166,10 @@ case "${1:-}" in
     else for f in "$WORK"/out/gpu*/job.log; do echo "==== ${f#$WORK/out/}"; grep -v '^W[0-9]\{4\}' "$f" | tail -c 3000; done
     fi  # per-gpu: each GPU's own log
     nvidia-smi --query-gpu=memory.used,utilization.gpu --format=csv,noheader
+    for c in "$JAX_COMPILATION_CACHE_DIR"*; do  # what carrying compiled programs between machines would take
+      [ -d "$c" ] && echo "compilation cache $(du -sm "$c" | cut -f1) MiB, largest entries (MiB): $(du -m "$c"/* 2>/dev/null \
+        | sort -rn | head -3 | cut -f1 | tr '\n' ' ')"
+    done
     cat "$WORK"/out/*/build.json "$WORK"/out/*/*/build.json 2>/dev/null
     pack "$@"; ls -la "$OUT"
     ;;
