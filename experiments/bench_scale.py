@@ -10,7 +10,8 @@ candidate tokens appended; one drafter pass over T tokens), the median wall time
 call and (--in_graph) its marginal cost inside a compiled loop, which a decode loop pays per
 pass without the call's dispatch, the seconds of its first call (its compile, or its load from
 JAX's compilation cache, and one run: what a layout or an XLA flag costs to compile), the
-bytes it must read (weights it touches, and the KV cache it attends over) and the FLOPs it must do, and so the achieved bandwidth and FLOP/s with their fractions of the
+bytes it must read (weights it touches, and the KV cache it attends over) and the FLOPs it
+must do, and so the achieved bandwidth and FLOP/s with their fractions of the
 device's peak (`PEAKS`; H100 SXM and H200: bf16 dense 989 TFLOP/s, HBM 3.35 / 4.8 TB/s).
 Inputs are zeros and the cache is full length: costs do not depend on values.
 """
@@ -159,8 +160,8 @@ def main(argv):
             first_s = timing.timed(fn)[1]  # compile (or a compilation-cache load) and one run
             ms = 1e3 * timing.median_seconds(fn, FLAGS.reps)
             nbytes, flops = pass_cost(cfg, piece, b, t)
-            row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "first_call_s": first_s, "bytes": nbytes, "flops": flops,
-                   "bandwidth_TBps": nbytes / ms / 1e9, "TFLOPps": flops / ms / 1e9}
+            row = {"batch": b, "pass": kind, "tokens": t, "ms": ms, "first_call_s": first_s, "bytes": nbytes,
+                   "flops": flops, "bandwidth_TBps": nbytes / ms / 1e9, "TFLOPps": flops / ms / 1e9}
             if FLAGS.in_graph:
                 row["loop_ms"] = timing.in_graph_ms(pieces[piece], args, n=(1, 4), reps=3)
             if bw:

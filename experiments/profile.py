@@ -142,8 +142,7 @@ def main(argv):
     meta = policy.meta
     hcfg = meta.get("hcfg")
     jit = functools.partial(jax.jit, compiler_options=options) if options else jax.jit
-    decoder = "ar" if meta.get("runs_as_ar") else FLAGS.method  # HeiSD where no option beats AR
-    fns = component_fns(meta, decoder, jit)
+    fns = component_fns(meta, "ar" if meta.get("runs_as_ar") else FLAGS.method, jit)  # HeiSD where no option beats AR
     tids, keys = env.cycling_eval_starts(FLAGS.batch)
     states = jax.jit(jax.vmap(env.reset))(keys, jnp.asarray(tids, jnp.int32))
     params = policy.params
@@ -155,9 +154,7 @@ def main(argv):
 
     def parts(states, pstate):
         obs = vla_policy.observation(states)
-        out = {"ar": (fns["ar"], params, obs)}
-        if "prefill" in want:
-            out["prefill"] = (fns["prefill"], params, obs)
+        out = {"ar": (fns["ar"], params, obs), "prefill": (fns["prefill"], params, obs)}
         if "start" in fns and want & {"draft_round", "verify_round"}:
             s = jax.block_until_ready(fns["start"](params, obs))
             tree, sel = jax.block_until_ready(fns["draft_round"](params, s))
