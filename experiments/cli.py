@@ -15,8 +15,6 @@ processes (hosts) into one JAX program (`--distributed`, `--coordinator_address`
 from __future__ import annotations
 
 import dataclasses
-import gzip
-import json
 import logging
 import os
 from pathlib import Path
@@ -26,6 +24,7 @@ from typing import Callable, NoReturn
 
 from absl import app, flags
 
+from heisd_jax import results_io
 from heisd_jax.cache_dirs import cache_root
 
 USAGE_EXIT = 2
@@ -192,7 +191,7 @@ def failure_weights(path: str) -> list[str]:
         rates = {name: sum(v) / len(v) for name, v in runs.items()}
     else:
         try:
-            summary = read_json(path)["summary"]["tasks"]
+            summary = results_io.read_json(path)["summary"]["tasks"]
             rates = {name: float(row["success_rate"]) for name, row in summary.items()}
         except (ValueError, KeyError, TypeError) as e:
             raise ValueError(f"weights from {path}: neither a DAgger dataset nor an evaluation's results JSON with "
@@ -200,20 +199,10 @@ def failure_weights(path: str) -> list[str]:
     return tasks_lib.failure_weights(rates)
 
 
-def read_json(path: str) -> dict:
-    """A JSON results file, plain or gzipped (`.json.gz`, as the results committed under
-    experiments/results are); ValueError naming the path when it cannot be read as one."""
-    try:
-        raw = Path(path).read_bytes()
-        return json.loads(gzip.decompress(raw) if path.endswith(".gz") else raw)
-    except (OSError, EOFError, json.JSONDecodeError) as e:
-        raise ValueError(f"{path}: not a readable JSON file ({type(e).__name__}: {e})") from e
-
-
 def load_eval_results(path: str) -> dict:
-    """An `experiments.evaluate` results file (`read_json`) with its per-episode and per-task
-    results; ValueError naming the path when it is not one."""
-    d = read_json(path)
+    """An `experiments.evaluate` results file (plain or gzipped JSON) with its per-episode and
+    per-task results; ValueError naming the path when it is not one."""
+    d = results_io.read_json(path)
     try:
         d["episodes"], d["summary"]["tasks"]  # noqa: B018  (an evaluate result has both)
     except (KeyError, TypeError) as e:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gzip
 import json
 import os
 import subprocess
@@ -10,15 +11,27 @@ from pathlib import Path
 
 
 def write_json_atomic(path: str | os.PathLike, obj) -> None:
-    """Writes JSON via a temporary file and rename: a crash leaves the old file intact."""
+    """Writes JSON via a temporary file and rename: a crash leaves the old file intact. A path
+    ending in `.gz` is written gzipped (as the results committed under experiments/results are)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1)
+    text = json.dumps(obj, indent=1).encode()
+    with open(tmp, "wb") as f:
+        f.write(gzip.compress(text, mtime=0) if path.name.endswith(".gz") else text)
         f.flush()
         os.fsync(f.fileno())
     os.replace(tmp, path)
+
+
+def read_json(path: str | os.PathLike):
+    """A JSON file, plain or gzipped (by its content, whatever its name); ValueError naming the
+    path when it cannot be read as one."""
+    try:
+        raw = Path(path).read_bytes()
+        return json.loads(gzip.decompress(raw) if raw[:2] == b"\x1f\x8b" else raw)
+    except (OSError, EOFError, gzip.BadGzipFile, json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not a readable JSON file ({type(e).__name__}: {e})") from e
 
 
 def commit(short: bool = True) -> str | None:
@@ -49,9 +62,8 @@ def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
     if not path.exists():
         return {}
     try:
-        with open(path) as f:
-            data = json.load(f)
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        data = read_json(path)
+    except ValueError as e:
         raise ValueError(f"{path} exists but is not a readable results file ({e}); choose another --out") from e
     if not isinstance(data, dict) or data.get("settings") != settings:
         raise ValueError(

@@ -20,6 +20,20 @@ def test_round_trip_and_resume(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]  # no temporary left behind
 
 
+def test_gz_path_is_written_gzipped_and_read_back(tmp_path):
+    path = tmp_path / "r.json.gz"
+    settings = {"method": "ar", "tasks": ["a"]}
+    episodes = {"a": [{"success": False, "steps": 7, "failure": "timeout"}]}
+    results_io.write_json_atomic(path, {"settings": settings, "episodes": episodes})
+    assert path.read_bytes()[:2] == b"\x1f\x8b"  # what its name says, so gzip-aware readers open it
+    assert results_io.load_resumable(path, settings) == episodes
+    plain = tmp_path / "plain.json.gz"  # named .gz but plain (as written before): still read
+    plain.write_text('{"x": 1}')
+    assert results_io.read_json(plain) == {"x": 1}
+    with pytest.raises(ValueError, match="not a readable JSON file"):
+        results_io.read_json(tmp_path / "missing.json")
+
+
 def test_foreign_settings_are_refused_and_file_kept(tmp_path):
     path = tmp_path / "r.json"
     results_io.write_json_atomic(path, {"settings": {"method": "expert"}, "episodes": {}})
