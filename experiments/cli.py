@@ -343,6 +343,20 @@ def executable_store(method: str, settings: dict):
                                      {"method": method, "settings": settings, "files": files})
 
 
+def contents(names) -> dict[str, str | None]:
+    """What each of the path flags `names` (--checkpoint, --drafter, --datastore) holds: a
+    short digest of its files, None where nothing is there (loading it fails later with its
+    own error). Recorded in a results file's settings, so a run over other files at the same
+    paths (a target installed since) never resumes it as if done."""
+    from heisd_jax.harness import executable_store as store_lib  # noqa: PLC0415
+
+    out = {}
+    for name in names:
+        path = Path(getattr(flags.FLAGS, name))
+        out[name] = store_lib.file_digest(path)[:16] if path.exists() else None
+    return out
+
+
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts
     "checkpoint": ("policy checkpoint", "Target VLA checkpoint (default: the shipped one)."),
     "drafter": ("drafter checkpoint", "Drafter checkpoint, trained on the target (default: the shipped one)."),

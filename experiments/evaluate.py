@@ -78,6 +78,7 @@ def main(argv):
     for name in methods.get(FLAGS.method).loads:
         if name != "checkpoint":
             settings[name] = os.path.abspath(paths[name])
+    settings["contents"] = cli.contents(methods.get(FLAGS.method).loads)
     try:
         done = results_io.load_resumable(FLAGS.out, settings)
         env = TabletopEnv(task_list, dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint),

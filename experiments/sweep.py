@@ -153,7 +153,8 @@ def main(argv):
     per_suite = {s: t for s, t in per_suite.items() if t}
     sweep = {"episodes": episodes, "tasks": task_filter, "checkpoint": os.path.abspath(FLAGS.checkpoint),
              "drafter": os.path.abspath(FLAGS.drafter), "datastore": os.path.abspath(FLAGS.datastore),
-             "physics": dataclasses.asdict(cli.physics_config())}
+             "physics": dataclasses.asdict(cli.physics_config()),
+             "contents": cli.contents(sorted({n for m, _ in method_list for n in methods.get(m).loads}))}
     try:
         store = results_io.SweepFile(FLAGS.out, sweep)
     except ValueError as e:

@@ -1,6 +1,8 @@
 """The batched evaluator with a VLA decoding method, end to end, and the shipped checkpoint."""
 
+import dataclasses
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -156,6 +158,36 @@ def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path
                        capture_output=True, text=True, cwd=Path(__file__).resolve().parents[1], timeout=300)
     assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
     assert out.read_text() == before
+
+
+def test_evaluate_resumes_only_over_the_same_checkpoint_files(tmp_path):
+    """A results file records what its checkpoint held, not only its path: a target installed
+    at the same path since is refused (its episodes would be another target's), the same files
+    resume it (every episode done: nothing runs)."""
+    from envs import physics
+    from heisd_jax.harness import executable_store
+
+    def settings(digest):
+        return {"method": "ar", "tasks": ["left_block_plate"], "episodes_per_task": 1,
+                "checkpoint": os.path.abspath(vla_policy.DEFAULT_CHECKPOINT),
+                "physics": dataclasses.asdict(physics.parse("")), "contents": {"checkpoint": digest}}
+
+    def run(out):
+        return subprocess.run([sys.executable, "-m", "experiments.evaluate", "--method=ar", "--tasks=left_block_plate",
+                               "--episodes=1", "--num_envs=1", f"--out={out}"], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parents[1], timeout=300)
+
+    done = {"left_block_plate": [{"success": True, "steps": 50, "failure": None}]}
+    other, same = tmp_path / "other.json", tmp_path / "same.json"
+    results_io.write_json_atomic(other, {"settings": settings("0" * 16), "episodes": done})
+    before = other.read_text()
+    r = run(other)
+    assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
+    assert other.read_text() == before
+    results_io.write_json_atomic(same, {"settings": settings(
+        executable_store.file_digest(vla_policy.DEFAULT_CHECKPOINT)[:16]), "episodes": done})
+    r = run(same)
+    assert r.returncode == 0 and "1 tasks x 1 episodes, 0 to run" in r.stdout, r.stderr[-3000:]
 
 
 def test_summary_counts_per_action_and_per_episode():
