@@ -75,6 +75,30 @@ def test_skipped_rows_execute_the_top_candidate_without_a_target_pass(tiny_hybri
     assert float(jnp.sum(st["target_passes"])) == 0 and float(jnp.sum(st["skipped"])) == B
 
 
+def test_strict_trees_after_relaxed_candidates_equal_the_ar_continuation(tiny_hybrid):
+    """Candidates accepted sequence-wise relaxed, then strict drafter trees: every token after
+    the accepted prefix is the target's own given that prefix, as continuation=ar's
+    single-token passes give it, so both decode the same actions (the guard's actions,
+    decoded in draft rounds instead of one pass per token)."""
+    params, obs, ar_tokens = tiny_hybrid
+    cand, cuts = candidates(ar_tokens, np.random.default_rng(2))
+    near = np.array(cand)
+    lo, hi = CFG.first_action_id, CFG.first_action_id + 255
+    for b, cut in enumerate(cuts):  # 3 bins off AR's up to the cut: accepted relaxed, not strict
+        near[b, 1, :cut] = np.clip(ar_tokens[b, :cut] + 3, lo, hi)
+    near = jnp.asarray(near)
+    use, valid, no_skip = jnp.ones((B,), bool), jnp.ones((B, 3), bool), jnp.zeros((B,), bool)
+    trees = dataclasses.replace(STRICT, acceptance="seq_relaxed")
+    assert trees.spec.acceptance == "strict" and trees.continuation == "drafter"
+    tokens, stats = _decode(params, CFG, trees, obs, near, valid, use, no_skip)
+    ar_tokens_cont, ar_stats = _decode(params, CFG, dataclasses.replace(trees, continuation="ar"), obs, near, valid,
+                                       use, no_skip)
+    np.testing.assert_array_equal(np.asarray(tokens), np.asarray(ar_tokens_cont))
+    assert (np.asarray(tokens) != ar_tokens).any()  # the relaxed prefixes were taken: not AR's actions
+    assert np.asarray(stats["drafter_passes"]).sum() > 0  # the trees ran
+    assert np.asarray(ar_stats["drafter_passes"]).sum() == 0
+
+
 def test_step_never_exceeds_k_skip_and_strict_step_equals_ar(tiny_hybrid):
     """A datastore holding each row's AR action under its own key: retrieval is perfect, so
     skipping would fire every step; it must stop after k_skip in a row, and only while in
