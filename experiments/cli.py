@@ -357,6 +357,19 @@ def contents(names) -> dict[str, str | None]:
     return out
 
 
+def config_digest(method: str, given: dict) -> str:
+    """A short digest of every setting method `method` runs with under the settings `given`
+    (its defaults filled in). Recorded beside the given settings, so results made under
+    another default (a release that changed it) are never resumed as if they were this one's."""
+    import hashlib  # noqa: PLC0415
+    import json  # noqa: PLC0415
+
+    from heisd_jax.harness import methods  # noqa: PLC0415
+
+    resolved = methods.settings_of(method, methods.config(method, given))
+    return hashlib.sha256(json.dumps(resolved, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
 PATH_FLAGS = {  # flag -> (what it names, its help line); defaults: the shipped artifacts
     "checkpoint": ("policy checkpoint", "Target VLA checkpoint (default: the shipped one)."),
     "drafter": ("drafter checkpoint", "Drafter checkpoint, trained on the target (default: the shipped one)."),

@@ -30,7 +30,8 @@ def label(result: dict) -> str:
     """The method, the settings its command gave, and the commit it ran at."""
     s = dict(result.get("settings", {}))
     method = s.pop("method", "?")
-    shown = {k: v for k, v in s.items() if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter", "physics")}
+    shown = {k: v for k, v in s.items()
+             if k not in ("tasks", "episodes_per_task", "checkpoint", "drafter", "physics", "contents", "config")}
     physics = _physics_text(s.get("physics"))
     if physics:
         shown["physics"] = f"({physics})"

@@ -72,6 +72,7 @@ def main(argv):
         settings["checkpoint"] = os.path.abspath(FLAGS.checkpoint)
     kwargs = method_flags.given(FLAGS.method)
     settings.update(kwargs)
+    settings["config"] = cli.config_digest(FLAGS.method, kwargs)
     env_physics = cli.physics_config()
     settings["physics"] = dataclasses.asdict(env_physics)
     paths = {"drafter": FLAGS.drafter, "datastore": FLAGS.datastore}

@@ -161,8 +161,8 @@ def main(argv):
         raise app.UsageError(str(e)) from e
     if store.repaired:
         print(f"{FLAGS.out}: cut off a partial last line (interrupted write); that cell is redone")
-    cells = [dict(method=m, settings=s, suite=su, seed=sd, num_envs=b, episodes=episodes)
-             for (m, s), su, sd, b in itertools.product(method_list, per_suite, seeds, num_envs)]
+    cells = [dict(method=m, settings=s, config=cli.config_digest(m, s), suite=su, seed=sd, num_envs=b,
+                  episodes=episodes) for (m, s), su, sd, b in itertools.product(method_list, per_suite, seeds, num_envs)]
     done = store.done()
     todo = [c for c in cells if results_io.cell_key(c) not in done]
     for m, s in method_list:  # a method that does not fit, or lacks a cost table, is refused now, not at its cell

@@ -20,6 +20,7 @@ from heisd_jax.tokenizer import ACTION_DIM, N_BINS
 GRIPPER_DIM = ACTION_DIM - 1
 TOKEN_RULES = ("strict", "token_relaxed")  # drafter trees: each node accepted on its own
 ACTION_RULES = ("strict", "token_relaxed", "seq_relaxed")  # retrieved whole actions: an accepted prefix
+RELAX_BINS = 9  # token_relaxed's window where none is given (drafter trees and retrieved actions)
 
 
 def check_rule(rule: str, valid: tuple[str, ...], what: str = "acceptance") -> None:

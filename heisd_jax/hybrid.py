@@ -64,11 +64,18 @@ def _check(name, value, valid):
 class HybridConfig:
     """The hybrid decode's configuration. Its defaults are the shipped `heisd` method's (the
     `heisd_jax.harness.methods` record runs this config when given no settings; a datastore's
-    calibration fills the metric scales, boundary and skip_eps); `PAPER` is the paper's."""
-    spec: spec_decode.SpecConfig = spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=9)  # drafter SD
+    calibration fills the metric scales, boundary and skip_eps); `PAPER` is the paper's.
+
+    Relaxed where whole actions are drafted, strict where tokens are: retrieved candidates are
+    accepted sequence-wise relaxed and may be executed unverified (verify-skip), and the
+    drafter's trees that decode the rest of an action are verified strictly, so after the
+    candidates the action is the target's greedy one, as with `continuation="ar"`. Relaxed
+    trees (the paper's, `PAPER`) accept more per round but move the executed actions off the
+    target's, and cost closed-loop success on our suites (docs/method.md)."""
+    spec: spec_decode.SpecConfig = spec_decode.SpecConfig()  # drafter SD: strict trees
     mode: str = "hybrid"
     acceptance: str = "seq_relaxed"  # rule for retrieval drafts
-    relax_bins: int = 9  # token_relaxed on retrieval drafts
+    relax_bins: int = rules.RELAX_BINS  # token_relaxed on retrieval drafts
     seq: rules.SeqRelaxedConfig = rules.SeqRelaxedConfig()
     n_candidates: int = 4  # retrieved from the datastore
     recent_candidates: int = 4  # the env's own last executed actions, newest first (our design)
@@ -134,8 +141,9 @@ class HybridConfig:
 
 
 # The paper's HeiSD: sequence-wise acceptance at r_max 15 / r_seq 42, verify-skip on the
-# datastore's top candidate, no recent-action candidates, one fixed draft tree.
-PAPER = HybridConfig(seq=rules.SeqRelaxedConfig(r_max=15, r_seq=42), recent_candidates=0,
+# datastore's top candidate, no recent-action candidates, one fixed draft tree, relaxed.
+PAPER = HybridConfig(spec=spec_decode.SpecConfig(acceptance="token_relaxed", relax_bins=rules.RELAX_BINS),
+                     seq=rules.SeqRelaxedConfig(r_max=15, r_seq=42), recent_candidates=0,
                      skip=rules.SkipConfig(source="retrieval", n_confirm=2, k_skip=3),
                      budget=budget_lib.BudgetConfig(mode="fixed"))
 

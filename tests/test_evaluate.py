@@ -160,16 +160,20 @@ def test_evaluate_refuses_a_results_file_of_other_settings_and_keeps_it(tmp_path
     assert out.read_text() == before
 
 
-def test_evaluate_resumes_only_over_the_same_checkpoint_files(tmp_path):
-    """A results file records what its checkpoint held, not only its path: a target installed
-    at the same path since is refused (its episodes would be another target's), the same files
-    resume it (every episode done: nothing runs)."""
+def test_evaluate_resumes_only_over_the_same_checkpoint_files_and_method_config(tmp_path):
+    """A results file records what its checkpoint held, not only its path, and every setting
+    its method ran with, not only those given: a target installed at the same path since, or a
+    method default changed since, is refused (its episodes would be another target's or
+    another config's), the same files and config resume it (every episode done: nothing runs)."""
     from envs import physics
+    from experiments import cli
     from heisd_jax.harness import executable_store
 
-    def settings(digest):
+    shipped = executable_store.file_digest(vla_policy.DEFAULT_CHECKPOINT)[:16]
+
+    def settings(digest, config=cli.config_digest("ar", {})):
         return {"method": "ar", "tasks": ["left_block_plate"], "episodes_per_task": 1,
-                "checkpoint": os.path.abspath(vla_policy.DEFAULT_CHECKPOINT),
+                "checkpoint": os.path.abspath(vla_policy.DEFAULT_CHECKPOINT), "config": config,
                 "physics": dataclasses.asdict(physics.parse("")), "contents": {"checkpoint": digest}}
 
     def run(out):
@@ -178,14 +182,15 @@ def test_evaluate_resumes_only_over_the_same_checkpoint_files(tmp_path):
                               cwd=Path(__file__).resolve().parents[1], timeout=300)
 
     done = {"left_block_plate": [{"success": True, "steps": 50, "failure": None}]}
-    other, same = tmp_path / "other.json", tmp_path / "same.json"
-    results_io.write_json_atomic(other, {"settings": settings("0" * 16), "episodes": done})
-    before = other.read_text()
-    r = run(other)
-    assert r.returncode != 0 and "other settings" in r.stderr, r.stderr[-3000:]
-    assert other.read_text() == before
-    results_io.write_json_atomic(same, {"settings": settings(
-        executable_store.file_digest(vla_policy.DEFAULT_CHECKPOINT)[:16]), "episodes": done})
+    for name, recorded in (("other_files", settings("0" * 16)), ("other_default", settings(shipped, "0" * 16))):
+        other = tmp_path / f"{name}.json"
+        results_io.write_json_atomic(other, {"settings": recorded, "episodes": done})
+        before = other.read_text()
+        r = run(other)
+        assert r.returncode != 0 and "other settings" in r.stderr, (name, r.stderr[-3000:])
+        assert other.read_text() == before
+    same = tmp_path / "same.json"
+    results_io.write_json_atomic(same, {"settings": settings(shipped), "episodes": done})
     r = run(same)
     assert r.returncode == 0 and "1 tasks x 1 episodes, 0 to run" in r.stdout, r.stderr[-3000:]
 

@@ -55,8 +55,16 @@ def test_sweep_keys_reach_the_nested_config():
 
 
 def test_implied_settings_and_calibration_fill_what_is_not_given():
-    strict = methods.config("heisd", {"acceptance": "strict"}).decode  # lossless unless asked otherwise
+    # heisd's default: relaxed retrieved actions (and verify-skip), strict trees after them.
+    h = methods.config("heisd").decode
+    assert (h.spec.acceptance, h.acceptance, h.skip.enabled, h.lossless) == ("strict", "seq_relaxed", True, False)
+    strict = methods.config("heisd", {"acceptance": "strict"}).decode  # given: lossless unless asked otherwise
     assert strict.lossless and strict.spec.relax_bins == 0 and strict.acceptance == "strict"
+    relaxed = methods.config("heisd", {"acceptance": "token_relaxed"}).decode  # the paper's kind of trees
+    assert (relaxed.spec.relax_bins, relaxed.acceptance, relaxed.skip.enabled) == (acceptance.RELAX_BINS,
+                                                                                   "seq_relaxed", True)
+    assert methods.config("drafter", {"acceptance": "token_relaxed"}).decode.relax_bins == acceptance.RELAX_BINS
+    assert methods.config("drafter", {"acceptance": "token_relaxed", "relax_bins": 3}).decode.relax_bins == 3
     assert methods.config("heisd", {"acceptance": "strict", "retrieval_acceptance": "seq_relaxed",
                                     "skip": False}).decode.acceptance == "seq_relaxed"
     assert not methods.config("heisd", {"recent_candidates": 0}).decode.skip.enabled  # no candidates to repeat
@@ -77,6 +85,8 @@ def test_bad_keys_and_values_are_refused_by_name():
         methods.check_settings("drafter", {"acceptance": "seq_relaxed"})
     with pytest.raises(ValueError, match="unknown retrieval_acceptance 'loose'; valid: strict, token_relaxed, seq_"):
         methods.parse_method_list("retrieval:retrieval_acceptance=loose")
+    with pytest.raises(ValueError, match="relax_bins is only used with acceptance='token_relaxed'"):
+        methods.check_settings("heisd", {"relax_bins": 9})  # the default trees are strict
     with pytest.raises(ValueError, match="TOPKxDEPTHxTOTAL"):
         methods.check_settings("heisd", {"budget_trees": "4x2"})
     with pytest.raises(ValueError, match=r"unknown settings \['skip'\]; valid: dtype"):

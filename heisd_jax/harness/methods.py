@@ -8,8 +8,8 @@ whether it looks at the camera image, and whether it chooses a draft budget from
 costs. Its settings, the entry points' flags and the sweep keys (`heisd:budget=fixed`), are
 the fields of its config that `SETTINGS` names: their types and defaults are the config's,
 and given settings replace those fields (`config`), over a datastore's calibration for the
-hybrid methods, with what they imply (`_implied`: strict acceptance is lossless unless asked
-otherwise, verify-skip needs its source's candidates). `make_policy`
+hybrid methods, with what they imply (`_implied`: acceptance=strict given is lossless unless
+asked otherwise, verify-skip needs its source's candidates). `make_policy`
 builds its `envs.rollout.Policy` for an env: the scripted expert (an upper bound, no model)
 or a VLA decoding method over the shipped (or given) checkpoints.
 """
@@ -173,18 +173,19 @@ SETTINGS: dict[type, dict[str, Setting]] = {
         "top_k": _S("top_k", "Draft tree: children kept per level (EAGLE-2 top-k)."),
         "depth": _S("depth", "Draft tree: depth."),
         "total_tokens": _S("total_tokens", "Draft tree: nodes verified per round (<= top_k * depth)."),
-        "acceptance": _S("acceptance", "Drafter trees: acceptance rule (strict: lossless; every other rule "
-                         "follows, relax_bins 0, retrieval_acceptance strict, verify-skip off, unless given).",
-                         acceptance.TOKEN_RULES),
+        "acceptance": _S("acceptance", "Drafter trees: acceptance rule. Given as strict: lossless, every "
+                         "other rule follows (relax_bins 0, retrieval_acceptance strict, verify-skip off) unless "
+                         "given; heisd's default is strict trees after relaxed candidates. Given as token_relaxed: "
+                         f"relax_bins {acceptance.RELAX_BINS} unless given.", acceptance.TOKEN_RULES),
         "relax_bins": _S("relax_bins", "token_relaxed: accept a draft within this many bins of the target's "
-                         "choice (strict acceptance: 0 unless given)."),
+                         "choice (0 with strict acceptance)."),
         "spread": _S("spread_tree", "token_relaxed: a node's children ranked by the drafter's probability "
                      "mass within relax_bins of them and kept more than 2 x relax_bins apart."),
     },
     hybrid.HybridConfig: {
         "mode": _S("mode", "hybrid (kinematic boundary) or one mode at every step.", hybrid.MODES),
-        "acceptance": _S("retrieval_acceptance", "Acceptance rule for retrieval drafts (strict acceptance: strict "
-                         "unless given).", acceptance.ACTION_RULES),
+        "acceptance": _S("retrieval_acceptance", "Acceptance rule for retrieval drafts (acceptance=strict given: "
+                         "strict unless given).", acceptance.ACTION_RULES),
         "relax_bins": _S("retrieval_relax_bins", "token_relaxed retrieval acceptance: bins."),
         "n_candidates": _S("n_candidates", "Retrieved actions verified per step (0: no datastore query, the "
                            "recent actions alone, verify-skip from retrieval off unless given)."),
@@ -208,7 +209,7 @@ SETTINGS: dict[type, dict[str, Setting]] = {
     },
     acceptance.SkipConfig: {
         "enabled": _S("skip", "Verify-skip: a confident retrieval-mode row executes a candidate without a target "
-                      "pass (off with strict acceptance, or without the candidates its source needs, unless "
+                      "pass (off with acceptance=strict given, or without the candidates its source needs, unless "
                       "given)."),
         "source": _S("skip_source", "Verify-skip: what a skipped step executes: the env's last action again "
                      "(recent), or the datastore's top candidate (retrieval, the paper's; rarely confident enough "
@@ -326,13 +327,17 @@ def _cast(key: str, value, kind):
 
 
 def _implied(values: dict, given: dict) -> dict:
-    """The settings that follow from others, where not given themselves: strict acceptance
-    means lossless (relax_bins 0, strict retrieval acceptance, verify-skip off); verify-skip
-    needs its source's candidates (the datastore's, or the recent actions); a draft tree given
-    by top_k/depth/total_tokens is the one tree budget=auto chooses from."""
+    """The settings that follow from others, where not given themselves: strict acceptance,
+    given, means lossless (relax_bins 0, strict retrieval acceptance, verify-skip off; heisd's
+    default trees are strict too, after relaxed candidates); token_relaxed acceptance, given,
+    means relax_bins `acceptance.RELAX_BINS`; verify-skip needs its source's candidates (the
+    datastore's, or the recent actions); a draft tree given by top_k/depth/total_tokens is the
+    one tree budget=auto chooses from."""
     out = {}
-    if values.get("acceptance") == "strict":
+    if given.get("acceptance") == "strict":
         out.update(relax_bins=0, retrieval_acceptance="strict", skip=False)
+    if given.get("acceptance") == "token_relaxed" and not values.get("relax_bins"):
+        out["relax_bins"] = acceptance.RELAX_BINS
     if "skip" in values and ((values["n_candidates"] == 0 and values["skip_source"] == "retrieval")
                              or (values["recent_candidates"] == 0 and values["skip_source"] == "recent")):
         out["skip"] = False
@@ -517,7 +522,8 @@ METHODS: dict[str, Method] = {m.name: m for m in (
                                                           skip=dataclasses.replace(hybrid.PAPER.skip, enabled=False))),
            ("checkpoint", "drafter", "datastore"), renders=True, budget=True, build=_build_hybrid("retrieval")),
     # HeiSD: the kinematic boundary picks retrieval or drafter drafts per step; verify-skip,
-    # sequence-wise relaxed acceptance, a draft budget chosen from measured costs.
+    # sequence-wise relaxed acceptance of retrieved actions, strict drafter trees after them,
+    # a draft budget chosen from measured costs.
     Method("heisd", Config(decode=hybrid.HybridConfig()), ("checkpoint", "drafter", "datastore"), renders=True,
            budget=True, build=_build_hybrid("heisd")),
 )}
