@@ -160,3 +160,15 @@ def test_command_line_records_the_users_xla_flags(monkeypatch):
     assert "XLA_FLAGS" not in plain and plain.endswith("--batch=1 '--methods=ar;heisd'")
     monkeypatch.setattr(_xla, "USER_FLAGS", "--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL")
     assert cli.command_line() == "XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL " + plain
+
+
+def test_config_digest_is_the_settings_in_effect_not_those_given():
+    """Results record this digest beside the given settings: the same config reached by other
+    words is the same digest, another default (or value) is another."""
+    from experiments import cli
+
+    default = cli.config_digest("heisd", {})
+    spelled_out = {"budget": "auto", "acceptance": "strict", "retrieval_acceptance": "seq_relaxed", "skip": True}
+    assert cli.config_digest("heisd", spelled_out) == default
+    assert cli.config_digest("heisd", {"acceptance": "token_relaxed"}) != default
+    assert cli.config_digest("ar", {}) != cli.config_digest("ar", {"dtype": "bfloat16"})
