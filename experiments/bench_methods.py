@@ -128,23 +128,6 @@ def plot(rows, path):
     print(f"plot: {path}")
 
 
-def replay_fn(policy, compiler_options=None):
-    def run(params, states):
-        first = jax.tree.map(lambda x: x[0], states)
-        pstate = policy.init(params, first)
-        b = first.step.shape[0]
-        keys = jnp.zeros((b, 2), jnp.uint32)
-        per_row = rollout.per_row_leaves(policy, first)
-
-        def body(pstate, s):
-            fresh = policy.init(params, s)  # rows whose episode starts here begin from a fresh state
-            pstate = rollout.rows_set(jnp.where(s.step == 0, jnp.arange(b), b), fresh, pstate, per_row)
-            actions, pstate, stats = policy.act(params, s, pstate, keys)
-            return pstate, (actions, stats)
-        return jax.lax.scan(body, pstate, states)[1]
-    return jax.jit(run, compiler_options=compiler_options)
-
-
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -210,7 +193,7 @@ def main(argv):
                     raise app.UsageError(f"{name} at batch {b}: {e}") from e
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
-            fn = replay_fn(policy, xla_options.DEVICE_LOOPS if FLAGS.device_loops else None)
+            fn = replay.replay_fn(policy, xla_options.DEVICE_LOOPS if FLAGS.device_loops else None)
             # ms per batched action, per repetition
             rep_ms = 1e3 * np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)) / t_idx.shape[0]
             actions, stats = jax.device_get(fn(policy.params, sub))

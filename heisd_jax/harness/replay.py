@@ -4,7 +4,8 @@ measures how actions repeat).
 
 `record` rolls a policy out from the fixed evaluation initial states and keeps, per control
 step and env, what a decoding policy reads (`ReplayState`: observation, end-effector
-kinematics, task, step), the action taken and whether the episode had ended.
+kinematics, task, step), the action taken and whether the episode had ended; `replay_fn`
+plays a policy over such states, open loop.
 """
 
 from __future__ import annotations
@@ -58,3 +59,23 @@ def record(env: TabletopEnv, policy: rollout.Policy, n_envs: int, n_steps: int):
         info=ReplayInfo(task_id=jnp.broadcast_to(jnp.asarray(tids, jnp.int32), (t, n_envs))),
         step=jnp.broadcast_to(jnp.arange(t)[:, None], (t, n_envs)))
     return states, traj["action"], traj["done"]
+
+
+def replay_fn(policy: rollout.Policy, compiler_options=None):
+    """A jitted (params, states [T, B]) -> (actions [T, B, 7], stats per step): `policy` acting
+    on each recorded step in turn, its own state carried from step to step and started afresh
+    in the rows whose episode starts there."""
+    def run(params, states):
+        first = jax.tree.map(lambda x: x[0], states)
+        pstate = policy.init(params, first)
+        b = first.step.shape[0]
+        keys = jnp.zeros((b, 2), jnp.uint32)
+        per_row = rollout.per_row_leaves(policy, first)
+
+        def body(pstate, s):
+            fresh = policy.init(params, s)  # rows whose episode starts here begin from a fresh state
+            pstate = rollout.rows_set(jnp.where(s.step == 0, jnp.arange(b), b), fresh, pstate, per_row)
+            actions, pstate, stats = policy.act(params, s, pstate, keys)
+            return pstate, (actions, stats)
+        return jax.lax.scan(body, pstate, states)[1]
+    return jax.jit(run, compiler_options=compiler_options)

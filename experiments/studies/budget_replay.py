@@ -1,0 +1,205 @@
+"""The automatic draft budget replayed on measured acceptance, priced by a measured cost table.
+
+With strict drafter trees after the relaxed candidates (heisd's default), every budget option
+executes the same action on a step (the candidates' accepted prefix, then the target's greedy
+tokens), so one step's draft rounds under each option can be measured by replaying each option
+alone (`budget=fixed`) on the same recorded states, and the chooser of `heisd_jax.budget` then
+run over those per-step rounds without running a model again: what it would choose, and what
+that costs by a cost table from another device or scale (the 7B expansion's on an H200, say),
+against each fixed option and against an oracle that knows every step's rounds.
+
+  python -m experiments.studies.budget_replay --suites=all --steps=30 --lane_envs=8 \\
+      --tables=experiments/results/costs/7b_bf16_h200/costs_4d1af0212330f457.json --out=R.json
+
+Per step of the batch-1 replay it records: skipped (no target pass), the mode (retrieval or
+drafter) and the rounds of `ar+retrieval` (`continuation=ar`: single-token passes) and of each
+tree (after the candidates on retrieval steps, from the prefill on drafter steps). A tree
+without the candidates on a retrieval step, and plain AR on one (no query, so no skip and
+another action), are priced from the table but change no later step: the replay cannot say
+what they would have executed. Skipped steps cost nothing here.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+from absl import app, flags, logging
+
+import envs  # noqa: F401  (XLA flags before JAX starts)
+from envs import language, rollout, tasks as tasks_lib
+from envs.env import TabletopEnv
+from experiments import cli
+from heisd_jax import budget, checkpoint, cost_model, results_io
+from heisd_jax.harness import methods, replay
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("suites", "all", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
+flags.DEFINE_integer("steps", 30, "Recorded control steps per env.")
+flags.DEFINE_integer("record_envs", 64, "Recorded envs.")
+flags.DEFINE_integer("lane_envs", 8, "Recorded envs the batch-1 replay plays one after another.")
+flags.DEFINE_string("trees", "4x2x8/8x4x32", "Draft trees replayed (TOPKxDEPTHxTOTAL separated by '/').")
+flags.DEFINE_list("horizons", ["0", "60"], "Steps after which the chooser starts afresh (0: never): a short "
+                  "benchmark replay (bench_methods' 60 steps per lane) pays its first tries over fewer steps.")
+flags.DEFINE_list("tables", [], "Cost-table JSON files (cost_model.CostTable) to price the choices by.")
+flags.DEFINE_string("out", "", "JSON output path (with every step's rounds, for --rounds_from).")
+flags.DEFINE_string("rounds_from", "", "Instead of replaying: the per-step rounds of an earlier --out file.")
+cli.define_paths("checkpoint", "drafter", "datastore")
+
+
+def per_step_rounds(env, states, running, trees):
+    """{'skipped', 'drafter', 'ar+retrieval', tree name...}: per replayed step at batch 1, and
+    the share of steps whose action equals continuation=ar's under every tree."""
+    t_idx, e_idx = rollout.replay_lanes(running, min(FLAGS.record_envs, FLAGS.lane_envs), 1)
+    sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
+    runs = {"ar+retrieval": {"budget": "fixed", "continuation": "ar"}}
+    runs.update({"x".join(map(str, t)): {"budget": "fixed", "top_k": t[0], "depth": t[1], "total_tokens": t[2]}
+                 for t in trees})
+    out, actions = {}, {}
+    for name, settings in runs.items():
+        policy = methods.make_policy("heisd", env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                     datastore=FLAGS.datastore, batch_size=1, **settings)
+        acts, stats = jax.device_get(replay.replay_fn(policy)(policy.params, sub))
+        actions[name] = np.asarray(acts)[:, 0]
+        out[name] = np.asarray(stats["rounds"])[:, 0]
+        out.setdefault("skipped", np.asarray(stats["skipped"])[:, 0] > 0)
+        out.setdefault("drafter", np.asarray(stats["drafter_mode"])[:, 0] > 0)
+        print(f"{name}: {out[name].mean():.2f} rounds per step", flush=True)
+    ref = actions["ar+retrieval"]
+    same = float(np.mean([np.all(a == ref, -1).mean() for a in actions.values()]))
+    return out, same
+
+
+def simulate(cfg: budget.BudgetConfig, costs: budget.Costs, opts, rounds: dict, horizon: int = 0) -> tuple[float, dict]:
+    """The chooser over the recorded steps, started afresh every `horizon` steps (0: never):
+    (priced ms summed, choices per option name)."""
+    fixed, per_round = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms)
+    drafter_mean = {o.name: float(np.mean(rounds[o.name][rounds["drafter"]] if rounds["drafter"].any() else 0))
+                    for o in opts if o.tree is not None and not o.retrieval}
+    state, spent, chosen = budget.init_state(opts), 0.0, {o.name: 0 for o in opts}
+    for t in range(len(rounds["skipped"])):
+        if horizon and t % horizon == 0:
+            state = budget.init_state(opts)
+        if rounds["skipped"][t]:
+            continue
+        retrieval_step = not rounds["drafter"][t]
+        o = int(budget.choose(costs, state, opts, np.asarray(retrieval_step), cfg.retry_share, cfg.margin))
+        opt = opts[o]
+        if opt.tree is None:
+            r = rounds["ar+retrieval"][t] if opt.retrieval else 0.0
+        elif opt.retrieval or not retrieval_step:
+            r = rounds[opt.name.removesuffix("+retrieval")][t]
+        else:  # a tree from the prefill alone on a retrieval step: its mean on drafter steps
+            r = drafter_mean[opt.name]
+        spent += fixed[o] + r * per_round[o]
+        chosen[opt.name] += 1
+        state = budget.update(cfg, state, opts, costs, o, float(r))
+    return spent, chosen
+
+
+def fixed_ms(costs, opts, rounds, tree: str | None) -> float:
+    """The priced ms of one fixed option: a tree (with the candidates on retrieval steps) or,
+    for None, continuation=ar."""
+    fixed, per_round, names = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms), [o.name for o in opts]
+    spent = 0.0
+    for t in range(len(rounds["skipped"])):
+        if rounds["skipped"][t]:
+            continue
+        base = "ar" if tree is None else tree
+        name = base if rounds["drafter"][t] else base + "+retrieval"
+        if tree is None and rounds["drafter"][t]:
+            spent += fixed[0]  # AR from the prefill: the whole AR decode
+            continue
+        i = names.index(name)
+        spent += fixed[i] + rounds["ar+retrieval" if tree is None else tree][t] * per_round[i]
+    return spent
+
+
+def main(argv):
+    del argv
+    logging.set_verbosity(logging.WARNING)
+    try:
+        trees = budget.parse_trees(FLAGS.trees)
+        task_list = tasks_lib.get_tasks(FLAGS.suites)
+        horizons = [int(h) for h in FLAGS.horizons]
+        if any(h < 0 for h in horizons):
+            raise ValueError(f"--horizons must be >= 0, got {horizons}")
+    except ValueError as e:
+        raise app.UsageError(str(e)) from e
+    if not FLAGS.tables:
+        raise app.UsageError("--tables: give at least one cost-table JSON file")
+    tables = []
+    for path in FLAGS.tables:
+        table = cost_model.CostTable(**json.loads(Path(path).read_text()))
+        missing = {"x".join(map(str, t)) for t in trees} - set(table.options)
+        if missing or table.options[0] != "ar":
+            raise app.UsageError(f"{path}: options {table.options} lack {sorted(missing) or 'ar first'}")
+        tables.append((path, table))
+    if FLAGS.rounds_from:
+        before = results_io.read_json(FLAGS.rounds_from)
+        rounds = {k: np.asarray(v) for k, v in before["per_step"].items()}
+        missing = {"x".join(map(str, t)) for t in trees} - set(rounds)
+        if missing:
+            raise app.UsageError(f"--rounds_from={FLAGS.rounds_from} has no rounds of {sorted(missing)}")
+        same = before["same_action_share"]
+    else:
+        checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)  # fails early on a bad checkpoint
+        env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
+        states, _, done = replay.record(env, methods.make_policy("ar", env, checkpoint=FLAGS.checkpoint),
+                                        FLAGS.record_envs, FLAGS.steps)
+        rounds, same = per_step_rounds(env, states, ~np.asarray(done), trees)
+    n = len(rounds["skipped"])
+    print(f"{n} steps, skipped {rounds['skipped'].mean():.2f}, drafter mode {rounds['drafter'].mean():.2f}; "
+          f"actions equal to continuation=ar's under every option: {same:.3f}")
+    report = {**results_io.provenance(cli.command_line()), "steps": n, "same_action_share": same,
+              "skipped": float(rounds["skipped"].mean()), "drafter_mode": float(rounds["drafter"].mean()),
+              "mean_rounds": {k: float(np.mean(v)) for k, v in rounds.items() if k not in ("skipped", "drafter")},
+              "tables": {}, "per_step": {k: np.asarray(v).tolist() for k, v in rounds.items()}}
+    for path, table in tables:
+        all_opts = tuple(budget.Option(None if n_.removesuffix("+retrieval") == "ar" else
+                                       budget.parse_trees(n_.removesuffix("+retrieval"))[0], n_.endswith("+retrieval"))
+                         for n_ in table.options)
+        costs = table.costs()
+        ar_total = float(table.fixed_ms[0]) * n
+        rows = {}
+        for name in ["ar+retrieval"] + ["x".join(map(str, t)) for t in trees]:
+            ms = fixed_ms(costs, all_opts, rounds, None if name == "ar+retrieval" else name)
+            rows[f"fixed {name}"] = {"x_ar": float(ar_total / ms)}
+        sets = [trees] + ([(t,) for t in trees] if len(trees) > 1 else [])
+        for tree_set in sets:
+            keep = [i for i, o in enumerate(all_opts) if o.tree is None or o.tree in tree_set]
+            opts = tuple(all_opts[i] for i in keep)
+            sub = budget.Costs(fixed_ms=costs.fixed_ms[np.asarray(keep)], round_ms=costs.round_ms[np.asarray(keep)])
+            cfg = dataclasses.replace(budget.BudgetConfig(), trees=tree_set)
+            for horizon in horizons:
+                ms, chosen = simulate(cfg, sub, opts, rounds, horizon)
+                label = "auto " + "/".join("x".join(map(str, t)) for t in tree_set) + (
+                    f", afresh every {horizon} steps" if horizon else "")
+                rows[label] = {"x_ar": float(ar_total / ms), "chosen": {k: v / n for k, v in chosen.items() if v}}
+        # the oracle: per step the cheapest option that ran on it (retrieval steps: ar+retrieval or a
+        # tree after the candidates; drafter steps: AR or a tree from the prefill)
+        fixed, per_round, names = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms), list(table.options)
+        best = 0.0
+        for t in range(n):
+            if rounds["skipped"][t]:
+                continue
+            tail = "" if rounds["drafter"][t] else "+retrieval"
+            cands = [fixed[0]] + [fixed[names.index(k + tail)] + rounds[k if k != "ar" else "ar+retrieval"][t]
+                                  * per_round[names.index(k + tail)]
+                                  for k in ["x".join(map(str, tr)) for tr in trees] + ([] if tail == "" else ["ar"])]
+            best += min(cands)
+        rows["oracle per step"] = {"x_ar": float(ar_total / best)}
+        print(f"{path} ({table.key.get('device')}, batch {table.key.get('batch')}): AR {table.fixed_ms[0]:.2f} ms")
+        for label, row in rows.items():
+            chosen = " ".join(f"{k} {v:.2f}" for k, v in row.get("chosen", {}).items())
+            print(f"  {label:<24} {row['x_ar']:.2f}x AR  {chosen}")
+        report["tables"][path] = rows
+    if FLAGS.out:
+        results_io.write_json_atomic(FLAGS.out, report)
+
+
+if __name__ == "__main__":
+    cli.run(main)
