@@ -24,17 +24,30 @@ def method_label(cell: dict) -> str:
     return cli.method_label(cell["method"], dict(sorted(cell["settings"].items())))
 
 
+def labels(records: list[dict]) -> list[str]:
+    """Each record's method label; where one label covers cells run under different method
+    configs (the same settings given, another default: a sweep file resumed across a release
+    that changed one), each is told apart by its config digest ('unrecorded' before sweeps
+    recorded it)."""
+    names = [method_label(r["cell"]) for r in records]
+    configs = collections.defaultdict(set)
+    for name, r in zip(names, records):
+        configs[name].add(r["cell"].get("config"))
+    return [name + (f" @config {r['cell'].get('config') or 'unrecorded'}" if len(configs[name]) > 1 else "")
+            for name, r in zip(names, records)]
+
+
 def summarize(records: list[dict]) -> list[dict]:
     """One row per cell, with speedup and success-rate drop against the AR cell of the same
     suite, seed and batch size (None where the sweep has no such AR cell)."""
     ar = {(r["cell"]["suite"], r["cell"]["seed"], r["cell"]["num_envs"]): r for r in records
           if r["cell"]["method"] == "ar" and not r["cell"]["settings"]}
     rows = []
-    for r in records:
+    for r, name in zip(records, labels(records)):
         c, s, t = r["cell"], r["suite"], r["timing"]
         base = ar.get((c["suite"], c["seed"], c["num_envs"]))
         rows.append({
-            "method": method_label(c), "suite": c["suite"], "seed": c["seed"], "num_envs": c["num_envs"],
+            "method": name, "suite": c["suite"], "seed": c["seed"], "num_envs": c["num_envs"],
             "episodes": s.get("episodes", 0), "success_rate": s.get("success_rate"),
             "acceptance_length": s.get("tokens_per_target_pass"), "target_passes_per_action": s.get("target_passes_per_action"),
             "ms_per_control_step": t["ms_per_control_step"],

@@ -73,6 +73,12 @@ def test_report_measures_speedup_against_ar_of_the_same_sweep(tmp_path):
     assert rows[("drafter:relax_bins=9", "long")]["speedup_vs_ar"] is None  # no AR cell for long: no ratio
     text = report.table(list(rows.values()))
     assert "drafter:relax_bins=9" in text and "1.25" in text
+    # One label over two method configs (a sweep resumed across a changed default): told apart.
+    old, new = _record("heisd", {}, "goal", 0.4, 9.0, 2.0), _record("heisd", {}, "goal", 0.5, 10.0, 1.9)
+    new["cell"]["config"] = "0123456789abcdef"
+    assert [r["method"] for r in report.summarize([old, new])] == ["heisd @config unrecorded",
+                                                                    "heisd @config 0123456789abcdef"]
+    assert [r["method"] for r in report.summarize([new])] == ["heisd"]
     pngs = report.plots(list(rows.values()), tmp_path / "plots")
     assert sorted(p.name for p in pngs) == ["acceptance_length_hist.png", "speedup_vs_sr_drop.png"]
     assert all(p.read_bytes().startswith(b"\x89PNG") and p.stat().st_size > 1000 for p in pngs)
