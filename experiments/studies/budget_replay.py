@@ -137,6 +137,9 @@ def main(argv):
         missing = {"x".join(map(str, t)) for t in trees} - set(table.options)
         if missing or table.options[0] != "ar":
             raise app.UsageError(f"{path}: options {table.options} lack {sorted(missing) or 'ar first'}")
+        if table.key.get("batch") != 1:
+            raise app.UsageError(f"{path} prices batch {table.key.get('batch')}: the replay is at batch 1 (a larger "
+                                 f"batch pays its slowest row's rounds), so give batch-1 tables")
         tables.append((path, table))
     if FLAGS.rounds_from:
         before = results_io.read_json(FLAGS.rounds_from)
