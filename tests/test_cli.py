@@ -45,6 +45,8 @@ CASES = [
     ("studies.invariant_tiles", ["--tiles=64x48x32"], "n=48: must be a power of two >= 16"),
     ("studies.trace_decode", ["--functions=prefill,prefil"], "--functions ['prefil']: valid are ['ar', 'prefill'"),
     ("studies.expert_gain", ["--gains=1.2,0"], "--gains must be > 0"),
+    ("studies.budget_replay", ["--tables=experiments/results/costs/cost_table_bf16_target_b16_h200.json"],
+     "prices batch 16: the replay is at batch 1"),
     ("profile", ["--compiler_options=xla_bogus=1"], "No such compile option: 'xla_bogus'"),
     ("profile", ["--compiler_options=xla_gpu_deterministic_ops"], "is not key=value"),
     ("profile", ["--parts=prefill,verify"], "--parts: unknown ['verify']; valid parts: ['prefill', 'prefill+cand'"),

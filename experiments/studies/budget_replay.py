@@ -77,8 +77,8 @@ def simulate(cfg: budget.BudgetConfig, costs: budget.Costs, opts, rounds: dict, 
     """The chooser over the recorded steps, started afresh every `horizon` steps (0: never):
     (priced ms summed, choices per option name)."""
     fixed, per_round = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms)
-    drafter_mean = {o.name: float(np.mean(rounds[o.name][rounds["drafter"]] if rounds["drafter"].any() else 0))
-                    for o in opts if o.tree is not None and not o.retrieval}
+    drafter_mean = {o.name: float(np.mean(rounds[o.name][rounds["drafter"]])) if rounds["drafter"].any()
+                    else o.prior_rounds for o in opts if o.tree is not None and not o.retrieval}
     state, spent, chosen = budget.init_state(opts), 0.0, {o.name: 0 for o in opts}
     for t in range(len(rounds["skipped"])):
         if horizon and t % horizon == 0:
@@ -92,7 +92,7 @@ def simulate(cfg: budget.BudgetConfig, costs: budget.Costs, opts, rounds: dict, 
             r = rounds["ar+retrieval"][t] if opt.retrieval else 0.0
         elif opt.retrieval or not retrieval_step:
             r = rounds[opt.name.removesuffix("+retrieval")][t]
-        else:  # a tree from the prefill alone on a retrieval step: its mean on drafter steps
+        else:  # a tree from the prefill alone on a retrieval step: its mean on drafter steps (or its prior)
             r = drafter_mean[opt.name]
         spent += fixed[o] + r * per_round[o]
         chosen[opt.name] += 1
