@@ -252,3 +252,38 @@ def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rou
         spent += float(true_ms[o])
         state = update(cfg, state, opts, costs, o, float(true_rounds[o]))
     return np.asarray(state.runs), spent
+
+
+def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], rounds: dict,
+                      horizon: int = 0) -> tuple[float, dict]:
+    """The chooser over recorded steps, started afresh every `horizon` steps (0: never): (ms
+    summed as the table prices each choice, choices per option name). `rounds`: per step,
+    'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
+    retrieval), and the draft rounds of 'ar+retrieval' and of each tree by name (after the
+    candidates on retrieval steps, from the prefill on drafter steps), as replaying each option
+    alone measures them (experiments/studies/budget_replay.py). A tree from the prefill alone
+    on a retrieval step, which no replay measures, is priced at its mean on drafter steps (its
+    prior where none was recorded); plain AR needs no rounds. On the host."""
+    fixed, per_round = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms)
+    drafter = np.asarray(rounds["drafter"], bool)
+    drafter_mean = {o.name: float(np.mean(np.asarray(rounds[o.name])[drafter])) if drafter.any() else o.prior_rounds
+                    for o in opts if o.tree is not None and not o.retrieval}
+    state, spent, chosen = init_state(opts), 0.0, {o.name: 0 for o in opts}
+    for t in range(len(rounds["skipped"])):
+        if horizon and t % horizon == 0:
+            state = init_state(opts)
+        if rounds["skipped"][t]:
+            continue
+        retrieval_step = not drafter[t]
+        o = int(choose(costs, state, opts, np.asarray(retrieval_step), cfg.retry_share, cfg.margin))
+        opt = opts[o]
+        if opt.tree is None:
+            r = float(rounds["ar+retrieval"][t]) if opt.retrieval else 0.0
+        elif opt.retrieval or not retrieval_step:
+            r = float(rounds[opt.name.removesuffix("+retrieval")][t])
+        else:
+            r = drafter_mean[opt.name]
+        spent += float(fixed[o] + r * per_round[o])
+        chosen[opt.name] += 1
+        state = update(cfg, state, opts, costs, o, r)
+    return spent, chosen

@@ -139,18 +139,17 @@ def test_retries_cost_at_most_their_share():
     np.testing.assert_array_equal(runs0, [498, 0, 1, 0, 1])
 
 
-def test_budget_replay_runs_the_library_chooser():
-    """experiments.studies.budget_replay prices the chooser over recorded per-step rounds: with
-    every step alike it spends and chooses what budget.simulate does with those rounds (a tree
-    from the prefill alone on a retrieval step: its prior, with no drafter step recorded)."""
-    from experiments.studies import budget_replay
-
+def test_recorded_rounds_replay_the_chooser():
+    """budget.simulate_recorded (behind experiments.studies.budget_replay) prices the chooser
+    over recorded per-step rounds: with every step alike it spends and chooses what
+    budget.simulate does with those rounds (a tree from the prefill alone on a retrieval step:
+    its prior, with no drafter step recorded)."""
     costs = _costs([1.0, 0.45, 0.5, 0.55, 0.5, 0.6], [0.0, 0.2, 0.25, 0.25, 0.4, 0.4])
     steps = 300
     rounds = {"skipped": np.zeros(steps, bool), "drafter": np.zeros(steps, bool), "ar+retrieval": np.full(steps, 2.0),
               "2x1x2": np.full(steps, 3.0), "2x2x4": np.full(steps, 1.0)}
     cfg = dataclasses.replace(AUTO.budget, retry_share=0.002)
-    spent, chosen = budget_replay.simulate(cfg, costs, ALL_OPTS, rounds)
+    spent, chosen = budget.simulate_recorded(cfg, costs, ALL_OPTS, rounds)
     runs, want = budget.simulate(cfg, costs, ALL_OPTS, [0.0, 2.0, 3.0, 3.0, 2.0, 1.0], steps)
     assert spent == pytest.approx(want, rel=1e-5)
     assert [chosen[o.name] for o in ALL_OPTS] == runs.astype(int).tolist() and sum(runs) == steps

@@ -4,7 +4,8 @@ With strict drafter trees after the relaxed candidates (heisd's default), every 
 executes the same action on a step (the candidates' accepted prefix, then the target's greedy
 tokens), so one step's draft rounds under each option can be measured by replaying each option
 alone (`budget=fixed`) on the same recorded states, and the chooser of `heisd_jax.budget` then
-run over those per-step rounds without running a model again: what it would choose, and what
+run over those per-step rounds (`budget.simulate_recorded`) without running a model again:
+what it would choose, and what
 that costs by a cost table from another device or scale (the 7B expansion's on an H200, say),
 against each fixed option and against an oracle that knows every step's rounds.
 
@@ -71,33 +72,6 @@ def per_step_rounds(env, states, running, trees):
     ref = actions["ar+retrieval"]
     same = float(np.mean([np.all(a == ref, -1).mean() for a in actions.values()]))
     return out, same
-
-
-def simulate(cfg: budget.BudgetConfig, costs: budget.Costs, opts, rounds: dict, horizon: int = 0) -> tuple[float, dict]:
-    """The chooser over the recorded steps, started afresh every `horizon` steps (0: never):
-    (priced ms summed, choices per option name)."""
-    fixed, per_round = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms)
-    drafter_mean = {o.name: float(np.mean(rounds[o.name][rounds["drafter"]])) if rounds["drafter"].any()
-                    else o.prior_rounds for o in opts if o.tree is not None and not o.retrieval}
-    state, spent, chosen = budget.init_state(opts), 0.0, {o.name: 0 for o in opts}
-    for t in range(len(rounds["skipped"])):
-        if horizon and t % horizon == 0:
-            state = budget.init_state(opts)
-        if rounds["skipped"][t]:
-            continue
-        retrieval_step = not rounds["drafter"][t]
-        o = int(budget.choose(costs, state, opts, np.asarray(retrieval_step), cfg.retry_share, cfg.margin))
-        opt = opts[o]
-        if opt.tree is None:
-            r = rounds["ar+retrieval"][t] if opt.retrieval else 0.0
-        elif opt.retrieval or not retrieval_step:
-            r = rounds[opt.name.removesuffix("+retrieval")][t]
-        else:  # a tree from the prefill alone on a retrieval step: its mean on drafter steps (or its prior)
-            r = drafter_mean[opt.name]
-        spent += fixed[o] + r * per_round[o]
-        chosen[opt.name] += 1
-        state = budget.update(cfg, state, opts, costs, o, float(r))
-    return spent, chosen
 
 
 def fixed_ms(costs, opts, rounds, tree: str | None) -> float:
@@ -178,7 +152,7 @@ def main(argv):
             sub = budget.Costs(fixed_ms=costs.fixed_ms[np.asarray(keep)], round_ms=costs.round_ms[np.asarray(keep)])
             cfg = dataclasses.replace(budget.BudgetConfig(), trees=tree_set)
             for horizon in horizons:
-                ms, chosen = simulate(cfg, sub, opts, rounds, horizon)
+                ms, chosen = budget.simulate_recorded(cfg, sub, opts, rounds, horizon)
                 label = "auto " + "/".join("x".join(map(str, t)) for t in tree_set) + (
                     f", afresh every {horizon} steps" if horizon else "")
                 rows[label] = {"x_ar": float(ar_total / ms), "chosen": {k: v / n for k, v in chosen.items() if v}}
