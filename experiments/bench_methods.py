@@ -228,6 +228,8 @@ def main(argv):
                 row["cost_table"] = dataclasses.asdict(policy.meta["cost_table"])
                 row["runs_as_ar"] = bool(policy.meta.get("runs_as_ar", False))
             rows.append(row)
+            if FLAGS.out:  # after every row: a run cut short (a step's time limit) keeps what it measured
+                write(rows, query_ms)
             shares = ""
             if "skipped" in stats_all:
                 shares = (f" retr-verified {row['retrieval_verified_per_action']:.2f} skipped "
@@ -241,8 +243,6 @@ def main(argv):
                   f"AL {row.get('tokens_per_target_pass', 1):.2f}  =AR {row['identical_to_ar_replay']:.2f}  "
                   f"=rec {row['identical_to_ar']:.2f}  "
                   f"bins {row['mean_bin_distance_to_ar']:.2f}  move {row['translation_vs_ar']:.3f}{shares}", flush=True)
-        if FLAGS.out:  # after every batch size: a run cut short keeps what it measured
-            write(rows, query_ms)
     if FLAGS.plot:
         plot(rows, FLAGS.plot)
 
