@@ -477,7 +477,8 @@ def _build_hybrid(name: str):
                                  f"(rows per device), got {batch_size}")
             if not hcfg.budget.drafts_at(batch_size):
                 log(f"{name}: batch {batch_size} is above budget_max_batch {hcfg.budget.max_batch}: decoding with "
-                    f"plain AR")
+                    f"plain AR (where a prefill costs in proportion to its rows, as at 7B, budget=fixed,"
+                    f"continuation=ar,row_buckets=8 takes verify-skipped rows out of it: docs/scale.md)")
                 return _as_ar(name, params, cfg, tok, table)
             table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log,
                                                   measure=calibrate_costs)
