@@ -271,13 +271,14 @@ def test_row_buckets_give_the_same_actions_as_the_whole_batch(tiny_hybrid):
     state = hybrid.init_state(B, spec, base)
     _, _, state, _ = run(p, CFG, base, spec, tok, state, obs, kin, jnp.arange(B))
     state = dataclasses.replace(state, repeats=jnp.arange(B) % 2)  # odd rows repeat, even rows verify
-    out = {k: run(p, CFG, dataclasses.replace(base, row_buckets=k), spec, tok, state, obs, kin, jnp.arange(B))
-           for k in (1, 3)}
-    np.testing.assert_array_equal(np.asarray(out[1][2].repeats), np.asarray(out[3][2].repeats))
-    np.testing.assert_array_equal(np.asarray(out[1][3]["skipped"]), np.arange(B) % 2)
-    np.testing.assert_array_equal(np.asarray(out[1][1]), np.asarray(out[3][1]))
-    for key in hybrid.STAT_KEYS:
-        np.testing.assert_allclose(np.asarray(out[1][3][key]), np.asarray(out[3][3][key]), err_msg=key)
+    for continuation in hybrid.CONTINUATION:  # drafter rounds, or single-token passes (the batched 7B setting)
+        cfgs = {k: dataclasses.replace(base, row_buckets=k, continuation=continuation) for k in (1, 3)}
+        out = {k: run(p, CFG, c, spec, tok, state, obs, kin, jnp.arange(B)) for k, c in cfgs.items()}
+        np.testing.assert_array_equal(np.asarray(out[1][2].repeats), np.asarray(out[3][2].repeats))
+        np.testing.assert_array_equal(np.asarray(out[1][3]["skipped"]), np.arange(B) % 2)
+        np.testing.assert_array_equal(np.asarray(out[1][1]), np.asarray(out[3][1]))
+        for key in hybrid.STAT_KEYS:
+            np.testing.assert_allclose(np.asarray(out[1][3][key]), np.asarray(out[3][3][key]), err_msg=key)
     # budget=auto: the same, and every row (in the bucket or not) reports the option chosen
     auto = dataclasses.replace(base, budget=budget.BudgetConfig(mode="auto", trees=((2, 2, 4),)))
     n_opts = len(budget.options(auto.budget, auto.mode))
