@@ -257,7 +257,7 @@ def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rou
 def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], rounds: dict,
                       horizon: int = 0) -> tuple[float, dict]:
     """The chooser over recorded steps, started afresh every `horizon` steps (0: never): (ms
-    summed as the table prices each choice, choices per option name). `rounds`: per step,
+    per step as the table prices each choice, 0 on skipped steps; choices per option name). `rounds`: per step,
     'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
     retrieval), and the draft rounds of 'ar+retrieval' and of each tree by name (after the
     candidates on retrieval steps, from the prefill on drafter steps), as replaying each option
@@ -268,7 +268,8 @@ def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...],
     drafter = np.asarray(rounds["drafter"], bool)
     drafter_mean = {o.name: float(np.mean(np.asarray(rounds[o.name])[drafter])) if drafter.any() else o.prior_rounds
                     for o in opts if o.tree is not None and not o.retrieval}
-    state, spent, chosen = init_state(opts), 0.0, {o.name: 0 for o in opts}
+    state, chosen = init_state(opts), {o.name: 0 for o in opts}
+    spent = np.zeros(len(rounds["skipped"]))
     for t in range(len(rounds["skipped"])):
         if horizon and t % horizon == 0:
             state = init_state(opts)
@@ -283,7 +284,7 @@ def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...],
             r = float(rounds[opt.name.removesuffix("+retrieval")][t])
         else:
             r = drafter_mean[opt.name]
-        spent += float(fixed[o] + r * per_round[o])
+        spent[t] = float(fixed[o] + r * per_round[o])
         chosen[opt.name] += 1
         state = update(cfg, state, opts, costs, o, r)
     return spent, chosen

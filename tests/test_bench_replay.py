@@ -52,3 +52,24 @@ def test_rows_set_resets_only_the_rows_given_and_keeps_batch_wide_leaves():
     assert out["rows"].tolist() == [[0, 1], [-1, -1], [4, 5]]
     assert out["shared"].tolist() == [1.0] * 3
     assert rollout.rows_set(jnp.asarray([3, 1, 3]), new, old, per_row, shared_too=True)["shared"].tolist() == [0.0] * 3
+
+
+def test_env_interval_resamples_whole_episodes():
+    """A figure over replayed episodes moves with the episodes drawn: x AR's 5-95 % range over
+    envs resampled with replacement. Alike episodes give no range at all; episodes at 4x and 2x
+    AR give a range inside [2x, 4x] around the pooled 2.67x, and more draws of the same
+    episodes narrow it; steps are weighted as they count, not episodes."""
+    from heisd_jax.harness import replay
+    env = np.repeat(np.arange(10), 20)
+    assert replay.env_interval(np.full(200, 10.0), 40.0, env) == pytest.approx([4.0, 4.0])
+    ms = np.where(env < 5, 10.0, 20.0)
+    lo, hi = replay.env_interval(ms, 40.0, env)
+    assert 2.0 < lo < 40.0 * 200 / ms.sum() < hi < 4.0
+    many = np.repeat(np.arange(200), 20)
+    lo2, hi2 = replay.env_interval(np.where(many < 100, 10.0, 20.0), 40.0, many)
+    assert lo < lo2 < hi2 < hi
+    # one long slow episode (2x) among four short fast ones (4x): drawn, its steps pull the
+    # figure to ~2x (a mean over episodes would stay near 3.6x); left out (a third of draws), 4x
+    env3 = np.concatenate([np.zeros(100, int), np.repeat(np.arange(1, 5), 5)])
+    lo3, hi3 = replay.env_interval(np.where(env3 == 0, 20.0, 10.0), 40.0, env3)
+    assert 2.0 < lo3 < 2.2 and hi3 == pytest.approx(4.0)

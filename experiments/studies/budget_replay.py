@@ -17,7 +17,9 @@ drafter) and the rounds of `ar+retrieval` (`continuation=ar`: single-token passe
 tree (after the candidates on retrieval steps, from the prefill on drafter steps). A tree
 without the candidates on a retrieval step, and plain AR on one (no query, so no skip and
 another action), are priced from the table but change no later step: the replay cannot say
-what they would have executed. Skipped steps cost nothing here.
+what they would have executed. Skipped steps cost nothing here. Each figure comes with the 5-95 %
+range of x AR over the replayed envs resampled (`replay.env_interval`): a replay of few envs, like a
+GPU benchmark's, moves with the episodes it draws.
 """
 
 from __future__ import annotations
@@ -59,7 +61,7 @@ def per_step_rounds(env, states, running, trees):
     runs = {"ar+retrieval": {"budget": "fixed", "continuation": "ar"}}
     runs.update({"x".join(map(str, t)): {"budget": "fixed", "top_k": t[0], "depth": t[1], "total_tokens": t[2]}
                  for t in trees})
-    out, actions = {}, {}
+    out, actions = {"env": e_idx[:, 0]}, {}
     for name, settings in runs.items():
         policy = methods.make_policy("heisd", env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
                                      datastore=FLAGS.datastore, batch_size=1, **settings)
@@ -74,21 +76,21 @@ def per_step_rounds(env, states, running, trees):
     return out, same
 
 
-def fixed_ms(costs, opts, rounds, tree: str | None) -> float:
-    """The priced ms of one fixed option: a tree (with the candidates on retrieval steps) or,
-    for None, continuation=ar."""
+def fixed_ms(costs, opts, rounds, tree: str | None) -> np.ndarray:
+    """The priced ms per step of one fixed option (0 on skipped steps): a tree (with the
+    candidates on retrieval steps) or, for None, continuation=ar."""
     fixed, per_round, names = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms), [o.name for o in opts]
-    spent = 0.0
+    spent = np.zeros(len(rounds["skipped"]))
     for t in range(len(rounds["skipped"])):
         if rounds["skipped"][t]:
             continue
         base = "ar" if tree is None else tree
         name = base if rounds["drafter"][t] else base + "+retrieval"
         if tree is None and rounds["drafter"][t]:
-            spent += fixed[0]  # AR from the prefill: the whole AR decode
+            spent[t] = fixed[0]  # AR from the prefill: the whole AR decode
             continue
         i = names.index(name)
-        spent += fixed[i] + rounds["ar+retrieval" if tree is None else tree][t] * per_round[i]
+        spent[t] = fixed[i] + rounds["ar+retrieval" if tree is None else tree][t] * per_round[i]
     return spent
 
 
@@ -133,18 +135,24 @@ def main(argv):
           f"actions equal to continuation=ar's under every option: {same:.3f}")
     report = {**results_io.provenance(cli.command_line()), "steps": n, "same_action_share": same,
               "skipped": float(rounds["skipped"].mean()), "drafter_mode": float(rounds["drafter"].mean()),
-              "mean_rounds": {k: float(np.mean(v)) for k, v in rounds.items() if k not in ("skipped", "drafter")},
+              "mean_rounds": {k: float(np.mean(v)) for k, v in rounds.items() if k not in ("skipped", "drafter", "env")},
               "tables": {}, "per_step": {k: np.asarray(v).tolist() for k, v in rounds.items()}}
     for path, table in tables:
         all_opts = tuple(budget.Option(None if n_.removesuffix("+retrieval") == "ar" else
                                        budget.parse_trees(n_.removesuffix("+retrieval"))[0], n_.endswith("+retrieval"))
                          for n_ in table.options)
         costs = table.costs()
-        ar_total = float(table.fixed_ms[0]) * n
+        ar_ms = float(table.fixed_ms[0])
+        ar_total = ar_ms * n
         rows = {}
+
+        def priced(ms, **extra):  # x AR, and its spread over the envs where the steps name them
+            out = {"x_ar": float(ar_total / ms.sum()), **extra}
+            if "env" in rounds:
+                out["x_ar_env_90"] = replay.env_interval(ms, ar_ms, rounds["env"])
+            return out
         for name in ["ar+retrieval"] + ["x".join(map(str, t)) for t in trees]:
-            ms = fixed_ms(costs, all_opts, rounds, None if name == "ar+retrieval" else name)
-            rows[f"fixed {name}"] = {"x_ar": float(ar_total / ms)}
+            rows[f"fixed {name}"] = priced(fixed_ms(costs, all_opts, rounds, None if name == "ar+retrieval" else name))
         sets = [trees] + ([(t,) for t in trees] if len(trees) > 1 else [])
         for tree_set in sets:
             keep = [i for i, o in enumerate(all_opts) if o.tree is None or o.tree in tree_set]
@@ -155,11 +163,11 @@ def main(argv):
                 ms, chosen = budget.simulate_recorded(cfg, sub, opts, rounds, horizon)
                 label = "auto " + "/".join("x".join(map(str, t)) for t in tree_set) + (
                     f", afresh every {horizon} steps" if horizon else "")
-                rows[label] = {"x_ar": float(ar_total / ms), "chosen": {k: v / n for k, v in chosen.items() if v}}
+                rows[label] = priced(ms, chosen={k: v / n for k, v in chosen.items() if v})
         # the oracle: per step the cheapest option that ran on it (retrieval steps: ar+retrieval or a
         # tree after the candidates; drafter steps: AR or a tree from the prefill)
         fixed, per_round, names = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms), list(table.options)
-        best = 0.0
+        best = np.zeros(n)
         for t in range(n):
             if rounds["skipped"][t]:
                 continue
@@ -167,12 +175,13 @@ def main(argv):
             cands = [fixed[0]] + [fixed[names.index(k + tail)] + rounds[k if k != "ar" else "ar+retrieval"][t]
                                   * per_round[names.index(k + tail)]
                                   for k in ["x".join(map(str, tr)) for tr in trees] + ([] if tail == "" else ["ar"])]
-            best += min(cands)
-        rows["oracle per step"] = {"x_ar": float(ar_total / best)}
+            best[t] = min(cands)
+        rows["oracle per step"] = priced(best)
         print(f"{path} ({table.key.get('device')}, batch {table.key.get('batch')}): AR {table.fixed_ms[0]:.2f} ms")
         for label, row in rows.items():
             chosen = " ".join(f"{k} {v:.2f}" for k, v in row.get("chosen", {}).items())
-            print(f"  {label:<24} {row['x_ar']:.2f}x AR  {chosen}")
+            spread = "[{:.2f}..{:.2f}] over envs".format(*row["x_ar_env_90"]) if "x_ar_env_90" in row else ""
+            print(f"  {label:<24} {row['x_ar']:.2f}x AR {spread} {chosen}")
         report["tables"][path] = rows
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, report)

@@ -5,7 +5,8 @@ measures how actions repeat).
 `record` rolls a policy out from the fixed evaluation initial states and keeps, per control
 step and env, what a decoding policy reads (`ReplayState`: observation, end-effector
 kinematics, task, step), the action taken and whether the episode had ended; `replay_fn`
-plays a policy over such states, open loop.
+plays a policy over such states, open loop; `env_interval` says how far a figure over a few
+replayed episodes moves with the episodes drawn.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 from envs import rollout
@@ -79,3 +81,15 @@ def replay_fn(policy: rollout.Policy, compiler_options=None):
             return pstate, (actions, stats)
         return jax.lax.scan(body, pstate, states)[1]
     return jax.jit(run, compiler_options=compiler_options)
+
+
+def env_interval(ms: np.ndarray, ar_ms: float, env: np.ndarray, draws: int = 2000, seed: int = 0) -> list[float]:
+    """The 5th and 95th percentiles of x AR over the replayed envs resampled with replacement
+    (whole episodes, the unit a replay samples): how far a figure over this many envs moves
+    with the envs drawn. ms: priced ms per step; env: each step's recorded env."""
+    ids, which = np.unique(env, return_inverse=True)
+    spent = np.bincount(which, ms, len(ids))
+    steps = np.bincount(which, minlength=len(ids))
+    pick = np.random.default_rng(seed).integers(0, len(ids), (draws, len(ids)))
+    ratio = ar_ms * steps[pick].sum(1) / spent[pick].sum(1)
+    return np.percentile(ratio, [5, 95]).tolist()
