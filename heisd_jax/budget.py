@@ -255,10 +255,10 @@ def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rou
 
 
 def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], rounds: dict,
-                      horizon: int = 0) -> tuple[float, dict]:
+                      horizon: int = 0) -> tuple[np.ndarray, dict]:
     """The chooser over recorded steps, started afresh every `horizon` steps (0: never): (ms
-    per step as the table prices each choice, 0 on skipped steps; choices per option name). `rounds`: per step,
-    'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
+    per step as the table prices each choice, 0 on skipped steps; choices per option name).
+    `rounds`: per step, 'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
     retrieval), and the draft rounds of 'ar+retrieval' and of each tree by name (after the
     candidates on retrieval steps, from the prefill on drafter steps), as replaying each option
     alone measures them (experiments/studies/budget_replay.py). A tree from the prefill alone
