@@ -151,8 +151,10 @@ def main(argv):
             if "env" in rounds:
                 out["x_ar_env_90"] = replay.env_interval(ms, ar_ms, rounds["env"])
             return out
-        for name in ["ar+retrieval"] + ["x".join(map(str, t)) for t in trees]:
-            rows[f"fixed {name}"] = priced(fixed_ms(costs, all_opts, rounds, None if name == "ar+retrieval" else name))
+        per_option = {name: fixed_ms(costs, all_opts, rounds, None if name == "ar+retrieval" else name)
+                      for name in ["ar+retrieval"] + ["x".join(map(str, t)) for t in trees]}
+        for name, ms in per_option.items():
+            rows[f"fixed {name}"] = priced(ms)
         sets = [trees] + ([(t,) for t in trees] if len(trees) > 1 else [])
         for tree_set in sets:
             keep = [i for i, o in enumerate(all_opts) if o.tree is None or o.tree in tree_set]
@@ -165,17 +167,8 @@ def main(argv):
                     f", afresh every {horizon} steps" if horizon else "")
                 rows[label] = priced(ms, chosen={k: v / n for k, v in chosen.items() if v})
         # the oracle: per step the cheapest option that ran on it (retrieval steps: ar+retrieval or a
-        # tree after the candidates; drafter steps: AR or a tree from the prefill)
-        fixed, per_round, names = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms), list(table.options)
-        best = np.zeros(n)
-        for t in range(n):
-            if rounds["skipped"][t]:
-                continue
-            tail = "" if rounds["drafter"][t] else "+retrieval"
-            cands = [fixed[0]] + [fixed[names.index(k + tail)] + rounds[k if k != "ar" else "ar+retrieval"][t]
-                                  * per_round[names.index(k + tail)]
-                                  for k in ["x".join(map(str, tr)) for tr in trees] + ([] if tail == "" else ["ar"])]
-            best[t] = min(cands)
+        # tree after the candidates; drafter steps: AR or a tree from the prefill), as the fixed options price it
+        best = np.minimum.reduce([np.where(rounds["skipped"], 0.0, ar_ms), *per_option.values()])
         rows["oracle per step"] = priced(best)
         print(f"{path} ({table.key.get('device')}, batch {table.key.get('batch')}): AR {table.fixed_ms[0]:.2f} ms")
         for label, row in rows.items():
