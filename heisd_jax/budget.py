@@ -255,16 +255,19 @@ def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rou
 
 
 def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], rounds: dict,
-                      horizon: int = 0) -> tuple[np.ndarray, dict]:
+                      horizon: int = 0, prices: Costs | None = None) -> tuple[np.ndarray, dict]:
     """The chooser over recorded steps, started afresh every `horizon` steps (0: never): (ms
-    per step as the table prices each choice, 0 on skipped steps; choices per option name).
+    per step as `prices` (default: the chooser's own table, `costs`) prices each choice, 0 on
+    skipped steps; choices per option name). A chooser given a perturbed table and priced by
+    the measured one shows what the table's error costs.
     `rounds`: per step, 'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
     retrieval), and the draft rounds of 'ar+retrieval' and of each tree by name (after the
     candidates on retrieval steps, from the prefill on drafter steps), as replaying each option
     alone measures them (experiments/studies/budget_replay.py). A tree from the prefill alone
     on a retrieval step, which no replay measures, is priced at its mean on drafter steps (its
     prior where none was recorded); plain AR needs no rounds. On the host."""
-    fixed, per_round = np.asarray(costs.fixed_ms), np.asarray(costs.round_ms)
+    prices = costs if prices is None else prices
+    fixed, per_round = np.asarray(prices.fixed_ms), np.asarray(prices.round_ms)
     drafter = np.asarray(rounds["drafter"], bool)
     drafter_mean = {o.name: float(np.mean(np.asarray(rounds[o.name])[drafter])) if drafter.any() else o.prior_rounds
                     for o in opts if o.tree is not None and not o.retrieval}

@@ -154,6 +154,11 @@ def test_recorded_rounds_replay_the_chooser():
     assert spent.shape == (steps,) and spent.sum() == pytest.approx(want, rel=1e-5)
     assert [chosen[o.name] for o in ALL_OPTS] == runs.astype(int).tolist() and sum(runs) == steps
     assert np.count_nonzero(runs) >= 2  # more than one option ran: the retries are compared too
+    # Priced by another table, the same choices cost what that table says: twice every entry, twice the time.
+    double = budget.Costs(fixed_ms=2 * costs.fixed_ms, round_ms=2 * costs.round_ms)
+    spent2, chosen2 = budget.simulate_recorded(cfg, costs, ALL_OPTS, rounds, prices=double)
+    assert chosen2 == chosen
+    np.testing.assert_allclose(spent2, 2 * spent, rtol=1e-6)
 
 
 def test_retries_notice_a_change_of_regime():

@@ -49,6 +49,10 @@ flags.DEFINE_list("horizons", ["0", "60"], "Steps after which the chooser starts
                   "benchmark replay (bench_methods' 60 steps per lane) pays its first tries over fewer steps.")
 flags.DEFINE_list("tables", [], "Cost-table JSON files (cost_model.CostTable) to price the choices by.")
 flags.DEFINE_string("out", "", "JSON output path (with every step's rounds, for --rounds_from).")
+flags.DEFINE_integer("jitter", 0, "Per automatic row, also replay the chooser this many times on the cost table with "
+                     "every entry scaled by 1 + --jitter_sd x N(0, 1) (one seed each), priced by the table as "
+                     "measured: how much the choice, and its figure, move with the table's error.")
+flags.DEFINE_float("jitter_sd", 0.01, "Relative standard deviation of --jitter's perturbation.")
 flags.DEFINE_string("rounds_from", "", "Instead of replaying: the per-step rounds of an earlier --out file.")
 cli.define_paths("checkpoint", "drafter", "datastore")
 
@@ -94,6 +98,19 @@ def fixed_ms(costs, opts, rounds, tree: str | None) -> np.ndarray:
     return spent
 
 
+def jittered(cfg, costs, opts, rounds, horizon, ar_total) -> dict:
+    """x AR of the chooser fed --jitter perturbed copies of `costs` (each entry scaled by
+    1 + jitter_sd x N(0, 1), seeds 0, 1, ...), each priced by `costs` itself."""
+    xs = []
+    for seed in range(FLAGS.jitter):
+        rng = np.random.default_rng(seed)
+        noisy = budget.Costs(*(np.asarray(a * (1 + FLAGS.jitter_sd * rng.standard_normal(a.shape)), np.float32)
+                               for a in (np.asarray(costs.fixed_ms), np.asarray(costs.round_ms))))
+        ms, _ = budget.simulate_recorded(cfg, noisy, opts, rounds, horizon, prices=costs)
+        xs.append(float(ar_total / ms.sum()))
+    return {"mean": float(np.mean(xs)), "min": min(xs), "max": max(xs), "n": len(xs), "sd": FLAGS.jitter_sd}
+
+
 def main(argv):
     del argv
     logging.set_verbosity(logging.WARNING)
@@ -103,6 +120,8 @@ def main(argv):
         horizons = [int(h) for h in FLAGS.horizons]
         if any(h < 0 for h in horizons):
             raise ValueError(f"--horizons must be >= 0, got {horizons}")
+        if FLAGS.jitter < 0 or not 0 < FLAGS.jitter_sd < 0.5:
+            raise ValueError(f"need --jitter >= 0 and 0 < --jitter_sd < 0.5, got {FLAGS.jitter}, {FLAGS.jitter_sd}")
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     if not FLAGS.tables:
@@ -166,6 +185,8 @@ def main(argv):
                 label = "auto " + "/".join("x".join(map(str, t)) for t in tree_set) + (
                     f", afresh every {horizon} steps" if horizon else "")
                 rows[label] = priced(ms, chosen={k: v / n for k, v in chosen.items() if v})
+                if FLAGS.jitter:
+                    rows[label]["x_ar_jittered"] = jittered(cfg, sub, opts, rounds, horizon, ar_total)
         # the oracle: per step the cheapest option that ran on it (retrieval steps: ar+retrieval or a
         # tree after the candidates; drafter steps: AR or a tree from the prefill), as the fixed options price it
         best = np.minimum.reduce([np.where(rounds["skipped"], 0.0, ar_ms), *per_option.values()])
@@ -174,6 +195,8 @@ def main(argv):
         for label, row in rows.items():
             chosen = " ".join(f"{k} {v:.2f}" for k, v in row.get("chosen", {}).items())
             spread = "[{:.2f}..{:.2f}] over envs".format(*row["x_ar_env_90"]) if "x_ar_env_90" in row else ""
+            if "x_ar_jittered" in row:
+                spread += " {mean:.2f} [{min:.2f}..{max:.2f}] over {n} tables jittered".format(**row["x_ar_jittered"])
             print(f"  {label:<24} {row['x_ar']:.2f}x AR {spread} {chosen}")
         report["tables"][path] = rows
     if FLAGS.out:
