@@ -38,7 +38,13 @@ A margin: a drafting option is chosen only if predicted `margin` (10%) faster th
 table's own error is of that size: at batch 16 on an H200, without a margin, the chooser
 picked drafting on about half the steps although drafting measured 7-8% slower than AR in
 the same replays, and two calibrations of AR's decode at batch 1 differed by 12%. The
-price: at batch 1 AR runs on a quarter of the steps. (`experiments/studies/budget_sim.py` replays
+price: at batch 1 AR runs on a quarter of the steps. The same margin lies between tree
+sizes: a larger tree must be predicted `margin` faster than the next smaller one. Two trees
+after the candidates often cost within a few percent of each other (0.05 ms apart in a 7B
+table's fixed part), and without it the choice between them followed the noise of their
+running estimates: on the 7B expansion's table, moving one entry by 0.05 ms moved the 8x4x32
+tree's share of a replay from 3 % to 11 %, each of its steps ~1.4 ms dearer than 4x2x8's
+(`experiments/studies/budget_replay.py --jitter` measures this). (`experiments/studies/budget_sim.py` replays
 the chooser on measured cost tables.)
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
@@ -179,8 +185,12 @@ def init_state(opts: tuple[Option, ...]) -> BudgetState:
 
 
 def _handicap(opts: tuple[Option, ...], margin: float) -> jnp.ndarray:
-    """[O] factor on each option's predicted time: 1 for AR, 1 + margin for drafting options."""
-    return jnp.where(jnp.arange(len(opts)) > 0, 1.0 + margin, 1.0)
+    """[O] factor on each option's predicted time: 1 for AR, 1 + margin for `ar+retrieval` and
+    the smallest tree, and another factor 1 + margin per larger tree size (total tokens): a
+    larger tree is chosen only when predicted `margin` faster than the next smaller one."""
+    sizes = sorted({o.tree[2] for o in opts if o.tree is not None})
+    steps = [0 if i == 0 else 1 + (sizes.index(o.tree[2]) if o.tree is not None else 0) for i, o in enumerate(opts)]
+    return jnp.asarray((1.0 + margin) ** np.asarray(steps, np.float64), jnp.float32)
 
 
 def dominated(costs: Costs, opts: tuple[Option, ...], margin: float = 0.0) -> jnp.ndarray:

@@ -66,6 +66,23 @@ def test_a_drafting_option_must_win_by_the_margin():
     with pytest.raises(ValueError, match="margin"):
         budget.BudgetConfig(mode="auto", margin=1.0)
 
+def test_a_larger_tree_must_win_by_the_margin_over_a_smaller_one():
+    """Between two trees the margin applies again: the larger (more total tokens, whatever
+    the order given) is chosen only when predicted `margin` faster than the smaller, so two
+    near-equal trees are not chosen by the noise of their estimates."""
+    opts = budget.options(budget.BudgetConfig(mode="auto", trees=((2, 2, 4), (2, 1, 2))), "drafter")
+    assert [o.name for o in opts] == ["ar", "2x2x4", "2x1x2"]
+    costs = _costs([10.0, 2.0, 2.0], [0.0, 1.0, 1.0])
+
+    def chosen(large_rounds, margin=0.1):
+        state = dataclasses.replace(budget.init_state(opts), rounds=jnp.asarray([0.0, large_rounds, 1.0]))
+        return opts[int(budget.choose(costs, state, opts, jnp.asarray(True), margin=margin))].name
+
+    assert chosen(0.9, margin=0.0) == "2x2x4"  # 2.9 ms against 3.0: the larger tree without a margin
+    assert chosen(0.9) == "2x1x2"  # 3.3% faster is within the margin: the smaller tree
+    assert chosen(0.5) == "2x2x4"  # 17% faster
+
+
 def test_running_estimates():
     cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5, retry_weight=0.75)
     costs = _costs([1.0, 0.5, 0.5, 0.5, 0.5], [0.1] * 5)
