@@ -88,7 +88,7 @@ class BudgetConfig:
     retry_share: float = 0.002  # per option, at most this share of the time goes to re-trying it
     retry_weight: float = 0.5  # weight of a retry's observation (the option's estimate is stale)
     forget: float = 0.05  # per unchosen step, share by which an estimate returns to its long-run mean (0: never)
-    margin: float = 0.1  # a drafting option must be predicted this much faster than AR (the table's error)
+    margin: float = 0.1  # a drafting option must be predicted this much faster than AR, a larger tree than a smaller
     max_batch: int = 1  # drafting runs at batch sizes (rows per device) up to this; above, plain AR (`drafts_at`)
 
     def __post_init__(self):

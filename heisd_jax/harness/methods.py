@@ -238,7 +238,8 @@ SETTINGS: dict[type, dict[str, Setting]] = {
         "forget": _S("budget_forget", "budget=auto: per unchosen step, share by which an option's estimate "
                      "returns to its long-run mean (0: never).", only_with=("budget", "auto")),
         "margin": _S("budget_margin", "budget=auto: a drafting option must be predicted this much faster than AR "
-                     "to be chosen.", only_with=("budget", "auto")),
+                     "to be chosen, and a larger tree this much faster than the next smaller one.",
+                     only_with=("budget", "auto")),
         "max_batch": _S("budget_max_batch", "budget=auto: the largest batch size (rows per device) at which "
                         "drafting options run; above it the method decodes as plain AR.",
                         only_with=("budget", "auto")),
