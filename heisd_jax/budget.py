@@ -39,13 +39,14 @@ table's own error is of that size: at batch 16 on an H200, without a margin, the
 picked drafting on about half the steps although drafting measured 7-8% slower than AR in
 the same replays, and two calibrations of AR's decode at batch 1 differed by 12%. The
 price: at batch 1 AR runs on a quarter of the steps. The same margin lies between tree
-sizes: a larger tree must be predicted `margin` faster than the next smaller one. Two trees
-after the candidates often cost within a few percent of each other (0.05 ms apart in a 7B
-table's fixed part), and without it the choice between them followed the noise of their
-running estimates: on the 7B expansion's table, moving one entry by 0.05 ms moved the 8x4x32
-tree's share of a replay from 3 % to 11 %, each of its steps ~1.4 ms dearer than 4x2x8's
-(`experiments/studies/budget_replay.py --jitter` measures this). (`experiments/studies/budget_sim.py` replays
-the chooser on measured cost tables.)
+sizes: a larger tree must be predicted `margin` faster than the next smaller one (the
+second size, then, (1 + margin)^2 faster than AR). Two trees after the candidates often
+cost within a few percent of each other, and without it the choice between them follows
+the noise of their running estimates (on the 7B expansion's table, moving one entry by
+0.05 ms moved the 8x4x32 tree's share of a replay from 3 % to 11 %, each of its steps
+~1.4 ms dearer than 4x2x8's). `experiments/studies/budget_sim.py`
+replays the chooser on measured cost tables; `experiments/studies/budget_replay.py` on
+measured per-step rounds (`--jitter`: with the table's error).
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
 """
@@ -194,8 +195,8 @@ def _handicap(opts: tuple[Option, ...], margin: float) -> jnp.ndarray:
 
 
 def dominated(costs: Costs, opts: tuple[Option, ...], margin: float = 0.0) -> jnp.ndarray:
-    """[O] options that cannot beat plain AR (option 0) by `margin` even with the fewest
-    rounds their tree allows: never worth a try. (At batch 1,024 on an H200 the retrieval
+    """[O] options that cannot beat plain AR (option 0) by their margin (`_handicap`) even
+    with the fewest rounds their tree allows: never worth a try. (At batch 1,024 on an H200 the retrieval
     options' fixed part alone exceeds AR's whole decode; their first tries cost 1% of a
     160-step replay.)"""
     best_case = costs.fixed_ms + jnp.asarray([o.prior_rounds for o in opts], jnp.float32) * costs.round_ms
@@ -222,8 +223,9 @@ def predicted_ms(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any
 def choose(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retrieval,
            retry_share: float = 0.0, margin: float = 0.0) -> jnp.ndarray:
     """The option with the least expected time per action (ties: the earlier, AR first; a
-    drafting option's time counted `margin` higher), unless a slower option is due for a
-    retry: idle for at least regret / retry_share ms (then the most overdue one)."""
+    drafting option's time counted `margin` higher, a larger tree's once more per size),
+    unless a slower option is due for a retry: idle for at least regret / retry_share ms
+    (then the most overdue one)."""
     pred = predicted_ms(costs, state, opts, any_retrieval, margin)
     best = jnp.argmin(pred)
     regret = pred - pred[best]

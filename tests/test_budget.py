@@ -66,6 +66,7 @@ def test_a_drafting_option_must_win_by_the_margin():
     with pytest.raises(ValueError, match="margin"):
         budget.BudgetConfig(mode="auto", margin=1.0)
 
+
 def test_a_larger_tree_must_win_by_the_margin_over_a_smaller_one():
     """Between two trees the margin applies again: the larger (more total tokens, whatever
     the order given) is chosen only when predicted `margin` faster than the smaller, so two
