@@ -180,6 +180,7 @@ def main(argv):
         base = None
         todo = list(method_list) + ([("prefill", {})] if FLAGS.ceiling else [])
         for name, settings in todo:
+            t_build = time.perf_counter()
             if name == "prefill":
                 policy = prefill
             else:
@@ -194,9 +195,14 @@ def main(argv):
             if policy.meta.get("cost_table") is not None:
                 print(policy.meta["cost_table"].report(), flush=True)
             fn = replay.replay_fn(policy, xla_options.DEVICE_LOOPS if FLAGS.device_loops else None)
-            # ms per batched action, per repetition
-            rep_ms = 1e3 * np.asarray(wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)) / t_idx.shape[0]
+            t_built = time.perf_counter()
+            rep_s = wall_seconds(lambda: fn(policy.params, sub), FLAGS.reps)
+            rep_ms = 1e3 * np.asarray(rep_s) / t_idx.shape[0]  # ms per batched action, per repetition
             actions, stats = jax.device_get(fn(policy.params, sub))
+            # where a method's wall time went (a GPU job's step limits are planned from these): building
+            # (weights, cost table), compiling (the first call's time beyond a timed run's), in all
+            seconds = {"build": t_built - t_build, "total": time.perf_counter() - t_build,
+                       "compile": time.perf_counter() - t_built - sum(rep_s) - 2 * sum(rep_s) / len(rep_s)}
             stats_all = {k: float(np.asarray(v).sum()) for k, v in stats.items()}
             bins = np.asarray(tok.to_bins(actions))
             same, dist = np.all(bins == ar_bins, -1), np.abs(bins - ar_bins).mean(-1)
@@ -221,7 +227,7 @@ def main(argv):
                    # share of actions half the range or more from AR's (a saturated command reversed)
                    "bin_distance_to_ar_replay_per_dim": off_ar.mean(0).round(3).tolist(),
                    "reversed_vs_ar_replay_per_dim": (off_ar >= N_BINS // 2).mean(0).round(3).tolist(),
-                   "replay_steps": int(t_idx.shape[0])}
+                   "replay_steps": int(t_idx.shape[0]), "seconds": {k: round(v, 1) for k, v in seconds.items()}}
             if "target_passes" in stats_all:
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
             if policy.meta.get("cost_table") is not None:
@@ -242,7 +248,9 @@ def main(argv):
                   f"[{ratios.min():.2f}..{ratios.max():.2f}]  TPA {row.get('target_passes_per_action', 7):.2f}  "
                   f"AL {row.get('tokens_per_target_pass', 1):.2f}  =AR {row['identical_to_ar_replay']:.2f}  "
                   f"=rec {row['identical_to_ar']:.2f}  "
-                  f"bins {row['mean_bin_distance_to_ar']:.2f}  move {row['translation_vs_ar']:.3f}{shares}", flush=True)
+                  f"bins {row['mean_bin_distance_to_ar']:.2f}  move {row['translation_vs_ar']:.3f}{shares}  "
+                  f"({seconds['build']:.0f} s to build, {seconds['compile']:.0f} to compile, "
+                  f"{seconds['total']:.0f} in all)", flush=True)
     if FLAGS.plot:
         plot(rows, FLAGS.plot)
 
