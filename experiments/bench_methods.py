@@ -68,7 +68,7 @@ flags.DEFINE_integer("record_envs", 256, "Recorded envs (>= the largest batch si
 flags.DEFINE_integer("steps", 120, "Recorded control steps per env.")
 flags.DEFINE_enum("record_method", "ar", ["ar", "expert"], "Policy whose rollouts are recorded.")
 flags.DEFINE_integer("lane_envs", 4, "Recorded envs each replayed row plays one after another (their running steps).")
-flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).")
+flags.DEFINE_integer("reps", 5, "Timed calls per measurement (median).", lower_bound=1)
 cli.define_paths("checkpoint", "drafter", "datastore")
 flags.DEFINE_enum("target_scale", None, list(scale.SCALE_NAMES), "Every timed method (and the ceiling) with the "
                   "target expanded to this architecture (docs/scale.md), unless its --methods settings name one; "

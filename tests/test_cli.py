@@ -35,6 +35,7 @@ CASES = [
     ("ship_autotune", ["--out=/nonexistent/x.txt"], "--out must end in .pbtxt"),
     ("evaluate", ["--method=expert", "--target_scale=llama-1b"], "--method=expert takes none of --target_scale"),
     ("bench_methods", ["--target_scale=huge"], "<shipped|llama2-7b|llama-1b>"),
+    ("bench_methods", ["--reps=0"], "flag --reps=0: 0 is not a positive integer"),
     ("bench_methods", ["--methods=ar;heisd:budget=fixed;heisd", "--batch_sizes=1", "--record_envs=1",
                        "--cost_cache=/nonexistent/costs"], "has none for heisd at batch [1]: add --calibrate_costs"),
     ("bench_methods", ["--methods=ar;heisd:budget=fixed,n_candidates=16", "--batch_sizes=1", "--record_envs=1"],
