@@ -18,7 +18,8 @@ repeats its last action, which a method with verify-skip decodes almost for free
 those steps would credit it with time no running env saves.) Compiled ahead, then timed over --reps
 calls after an untimed first one; a first call of `LONG_RUN_S` or more counts as the first repetition
 (one-time costs of a first run are far below 0.1 % of it, and a whole-episode replay of a 7B-scale
-target runs ~80 s a call); the actions and stats are the last call's. Median of the repetitions; speedup = AR time / method time in this run, with its spread
+target runs ~80 s a call); the actions and stats are the last call's. Median of the repetitions;
+speedup = AR time / method time in this run, with its spread
 (min..max of the per-repetition ratios, AR's i-th repetition against the method's i-th).
 The target's prefill alone is timed the same way: AR / prefill is the ceiling of any method
 that prefills every action, reported per batch size. Per method it also reports target passes per
@@ -49,18 +50,17 @@ import numpy as np
 
 from envs import language, rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
-from heisd_jax.timing import median_seconds, timed
+from heisd_jax.timing import median_seconds, repeated
 from heisd_jax.tokenizer import N_BINS
 from heisd_jax import checkpoint, results_io, retrieval, scale, vla, xla_options
 from heisd_jax.harness import methods, replay, vla_policy
 from experiments import cli
 
 FLAGS = flags.FLAGS
+LONG_RUN_S = 20.0  # a first call at least this long is timed as a repetition (see above)
 cli.define_cost_flags()
 flags.DEFINE_string("methods", "ar;drafter:acceptance=token_relaxed,relax_bins=9;heisd",
                     "Methods (as in experiments.sweep); AR is always timed first as the baseline.")
-LONG_RUN_S = 20.0  # a first call at least this long is timed as a repetition (see above)
-
 flags.DEFINE_string("suites", "goal", f"Suites of {list(tasks_lib.SUITES)} or 'all'.")
 flags.DEFINE_list("batch_sizes", ["1", "256"], "Batch sizes.")
 cli.positive_int_list("batch_sizes")
@@ -202,11 +202,7 @@ def main(argv):
             t_built = time.perf_counter()
             compiled = fn.lower(policy.params, sub).compile()
             t_compiled = time.perf_counter()
-            out, first_s = timed(lambda: compiled(policy.params, sub))
-            rep_s = [first_s] if first_s >= LONG_RUN_S else []
-            while len(rep_s) < FLAGS.reps:
-                out, s_ = timed(lambda: compiled(policy.params, sub))
-                rep_s.append(s_)
+            out, rep_s = repeated(lambda: compiled(policy.params, sub), FLAGS.reps, LONG_RUN_S)
             rep_ms = 1e3 * np.asarray(rep_s) / t_idx.shape[0]  # ms per batched action, per repetition
             actions, stats = jax.device_get(out)
             # where a method's wall time went (a GPU job's step limits are planned from these)

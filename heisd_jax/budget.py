@@ -44,9 +44,9 @@ second size, then, (1 + margin)^2 faster than AR). Two trees after the candidate
 cost within a few percent of each other, and without it the choice between them follows
 the noise of their running estimates (on the 7B expansion's table, moving one entry by
 0.05 ms moved the 8x4x32 tree's share of a replay from 3 % to 11 %, each of its steps
-~1.4 ms dearer than 4x2x8's). `experiments/studies/budget_sim.py`
-replays the chooser on measured cost tables; `experiments/studies/budget_replay.py` on
-measured per-step rounds (`--jitter`: with the table's error).
+~1.4 ms dearer than 4x2x8's). `experiments/studies/budget_sim.py` replays the chooser on
+measured cost tables; `experiments/studies/budget_replay.py` on measured per-step rounds
+(`--jitter`: with the table's error).
 An option that needs retrieval rows is not eligible on a step where no row verifies
 retrieval (it would run as its drafter-only twin).
 """
@@ -196,9 +196,9 @@ def _handicap(opts: tuple[Option, ...], margin: float) -> jnp.ndarray:
 
 def dominated(costs: Costs, opts: tuple[Option, ...], margin: float = 0.0) -> jnp.ndarray:
     """[O] options that cannot beat plain AR (option 0) by their margin (`_handicap`) even
-    with the fewest rounds their tree allows: never worth a try. (At batch 1,024 on an H200 the retrieval
-    options' fixed part alone exceeds AR's whole decode; their first tries cost 1% of a
-    160-step replay.)"""
+    with the fewest rounds their tree allows: never worth a try. (At batch 1,024 on an H200
+    the retrieval options' fixed part alone exceeds AR's whole decode; their first tries cost
+    1% of a 160-step replay.)"""
     best_case = costs.fixed_ms + jnp.asarray([o.prior_rounds for o in opts], jnp.float32) * costs.round_ms
     return (best_case * _handicap(opts, margin) >= costs.fixed_ms[0]) & (jnp.arange(len(opts)) > 0)
 

@@ -37,11 +37,23 @@ def timed(fn):
     return out, time.perf_counter() - t0
 
 
+def repeated(fn, reps: int, first_counts_s: float = float("inf")):
+    """(the last call's result, blocked on; the wall-clock seconds of each of `reps` timed calls
+    of fn()), after one untimed call (compilation and warm-up excluded), unless that first call
+    took `first_counts_s` or more: then it is the first repetition (a long call's one-time
+    costs are negligible in it, and a call saved is worth its time)."""
+    out, first = timed(fn)
+    seconds = [first] if first >= first_counts_s else []
+    while len(seconds) < reps:
+        out, s = timed(fn)
+        seconds.append(s)
+    return out, seconds
+
+
 def wall_seconds(fn, reps: int) -> list[float]:
     """Wall-clock of each of `reps` calls of fn() (results blocked on), after one untimed
     call (compilation and warm-up excluded)."""
-    jax.block_until_ready(fn())
-    return [timed(fn)[1] for _ in range(reps)]
+    return repeated(fn, reps)[1]
 
 
 def median_seconds(fn, reps: int) -> float:
