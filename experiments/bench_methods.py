@@ -78,6 +78,9 @@ flags.DEFINE_enum("dtype", None, list(methods.DTYPES), "Every timed method (and 
 flags.DEFINE_enum("matmul_precision", None, list(vla.MATMUL_PRECISIONS), "Every timed method (and the ceiling) at "
                   "this matrix-product precision, unless its --methods settings name one (bf16_invariant: `=AR` "
                   "then says whether strict methods are token-identical to AR in bf16).")
+flags.DEFINE_enum("attention", None, [vla.AUTO_ATTENTION, *vla.ATTENTIONS], "Every timed method (and the ceiling) "
+                  "with this prefill attention, unless its --methods settings name one (default: each method's, "
+                  "auto: cuDNN's for an expanded target on a GPU in 16 bits).")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_bool("device_loops", False, "Compile every replay (AR's, the ceiling's and each method's) with "
                   "heisd_jax.xla_options.DEVICE_LOOPS: on a GPU the replay's step loop, the draft rounds and the "
@@ -89,8 +92,9 @@ flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --
 
 
 def common_settings() -> dict:
-    """The settings --target_scale, --dtype and --matmul_precision give every timed method."""
-    return {k: FLAGS[k].value for k in ("target_scale", "dtype", "matmul_precision") if FLAGS[k].value is not None}
+    """The settings --target_scale, --dtype, --matmul_precision and --attention give every timed method."""
+    return {k: FLAGS[k].value for k in ("target_scale", "dtype", "matmul_precision", "attention")
+            if FLAGS[k].value is not None}
 
 
 def prefill_policy(env: TabletopEnv):
@@ -233,6 +237,8 @@ def main(argv):
                    "bin_distance_to_ar_replay_per_dim": off_ar.mean(0).round(3).tolist(),
                    "reversed_vs_ar_replay_per_dim": (off_ar >= N_BINS // 2).mean(0).round(3).tolist(),
                    "replay_steps": int(t_idx.shape[0]), "seconds": {k: round(v, 1) for k, v in seconds.items()}}
+            if policy.meta.get("cfg") is not None:  # the numerics that ran (`attention`: auto resolved)
+                row["attention"] = policy.meta["cfg"].attention
             if "target_passes" in stats_all:
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
             if policy.meta.get("cost_table") is not None:

@@ -38,8 +38,9 @@ flags.DEFINE_string("suites", "all", "Suites whose tasks the envs cycle through.
 flags.DEFINE_integer("envs", 64, "Envs recorded in parallel (the batch size compared).")
 flags.DEFINE_integer("steps", 20, "Control steps recorded.")
 flags.DEFINE_integer("batch1_states", 1000, "States decoded one at a time (spread over the recording).")
-flags.DEFINE_enum("attention", vla.VLAConfig.attention, list(vla.ATTENTIONS), "How the 16-bit expansions' prefill "
-                  "attends (vla.VLAConfig.attention; cudnn: a GPU); float32 always attends with XLA's.")
+flags.DEFINE_enum("attention", methods.Numerics.attention, [vla.AUTO_ATTENTION, *vla.ATTENTIONS],
+                  "How the 16-bit expansions' prefill attends (a method's `attention`; auto: as a method's default, "
+                  "cudnn on a GPU, vla.resolve_attention); float32 always attends with XLA's.")
 flags.DEFINE_string("out", "results/scale_check.json", "Results JSON.")
 
 
@@ -95,7 +96,7 @@ def main(argv):
         t0 = time.perf_counter()
         big, big_cfg = scale.expand_target(params, cfg, FLAGS.target_scale, dtype)
         if dtype != "float32":
-            big_cfg = dataclasses.replace(big_cfg, attention=FLAGS.attention)
+            big_cfg = dataclasses.replace(big_cfg, attention=vla.resolve_attention(FLAGS.attention, big_cfg))
         jax.block_until_ready(big)
         built = time.perf_counter() - t0
         batch, one = decode_all(big, big_cfg)

@@ -44,6 +44,7 @@ from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
 NEG_INF = -1e9
 ATTENTIONS = ("xla", "cudnn")  # VLAConfig.attention
+AUTO_ATTENTION = "auto"  # a method's default (`harness.methods.Numerics`): `resolve_attention` picks one
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
@@ -397,9 +398,25 @@ class DecoderBlock(nn.Module):
 
 
 def check_attention(attention: str) -> None:
-    """Refuses an attention (`VLAConfig.attention`) this process's backend cannot run."""
+    """Refuses an attention (`VLAConfig.attention`, or AUTO_ATTENTION) this process's backend cannot run."""
     if attention == "cudnn" and jax.default_backend() != "gpu":
-        raise ValueError(f"attention 'cudnn' runs on a GPU, not on {jax.default_backend()}; valid here: xla")
+        raise ValueError(f"attention 'cudnn' runs on a GPU, not on {jax.default_backend()}; valid here: "
+                         f"{AUTO_ATTENTION}, xla")
+
+
+def resolve_attention(attention: str, cfg: VLAConfig, backend: str | None = None) -> str:
+    """The attention (ATTENTIONS) that `attention` gives model `cfg` on `backend` (None: this
+    process's): `attention` itself, or for AUTO_ATTENTION cuDNN's fused attention where it runs and
+    pays -- a GPU, a 16-bit dtype, a large model's per-layer decoder (`per_layer`: a
+    `heisd_jax.scale` expansion, whose prefill at 7B it makes 1.1x faster, AR 1.03x; docs/scale.md),
+    without `bf16_invariant` products (which compute the attention's products themselves) --
+    and XLA's elsewhere: on a CPU, in float32, and at a trained target's own small size, where it
+    is not measured to pay (in the 7B vision tower's 8 heads it was slower)."""
+    if attention != AUTO_ATTENTION:
+        return attention
+    fused = ((backend or jax.default_backend()) == "gpu" and cfg.dtype in ("bfloat16", "float16")
+             and cfg.per_layer and not cfg.batch_invariant)
+    return "cudnn" if fused else "xla"
 
 
 def fused_attention(q, k, v, mask, head_dim: int) -> jnp.ndarray:

@@ -66,6 +66,17 @@ def test_bad_flag_is_one_line(module, args, expected, tmp_path):
     assert expected in lines[0]
 
 
+def test_an_attention_this_machine_cannot_run_is_refused_before_recording(tmp_path):
+    import jax
+
+    if jax.default_backend() == "gpu":
+        pytest.skip("cuDNN's attention runs here")
+    for module, args in (("bench_methods", ["--attention=cudnn", "--dtype=bfloat16", "--methods=ar"]),
+                         ("evaluate", ["--method=ar", "--attention=cudnn", "--dtype=bfloat16"])):
+        test_bad_flag_is_one_line(module, args, "attention 'cudnn' runs on a GPU, not on cpu; valid here: auto, xla",
+                                  tmp_path)
+
+
 def test_bad_flag_writes_nothing(tmp_path):
     out = tmp_path / "eval.json"
     out.write_text("{}")

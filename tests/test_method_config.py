@@ -130,11 +130,15 @@ def test_fused_attention_is_a_numerics_setting_refused_where_it_cannot_run():
     with pytest.raises(ValueError, match="attention 'bad'"):
         methods.config("ar", {"attention": "bad"})
     if jax.default_backend() != "gpu":  # refused from the config, before any weight is made
-        with pytest.raises(ValueError, match="runs on a GPU, not on cpu; valid here: xla"):
+        with pytest.raises(ValueError, match="runs on a GPU, not on cpu; valid here: auto, xla"):
             methods.numerics_config(tiny_models.CFG, numerics, "bfloat16")
     f32 = methods.numerics_config(tiny_models.CFG, methods.Numerics(), "float32")
     with pytest.raises(ValueError, match="not float32; valid for float32: xla"):
         dataclasses.replace(f32, attention="cudnn")
+    # the default ("auto") is resolved in the model config: what runs and keys a cost table
+    assert methods.Numerics().attention == "auto" and f32.attention == "xla"
+    if jax.default_backend() != "gpu":
+        assert methods.numerics_config(tiny_models.CFG, methods.Numerics(dtype="bfloat16"), "bfloat16").attention == "xla"
 
 
 def test_what_does_not_fit_the_targets_cache_is_refused_from_configs_alone():

@@ -134,6 +134,18 @@ def test_fused_attention_is_refused_where_it_cannot_run():
             vla.init_params(cfg, jax.random.PRNGKey(0))
 
 
+def test_auto_attention_fuses_only_a_large_16_bit_model_on_a_gpu():
+    big = vla.VLAConfig(image_size=16, d_model=32, n_heads=2, n_layers=1, dtype="bfloat16", per_layer=True)
+    assert vla.resolve_attention("auto", big, backend="gpu") == "cudnn"
+    for other, backend in ((big, "cpu"), (dataclasses.replace(big, dtype="float32"), "gpu"),
+                           (dataclasses.replace(big, per_layer=False), "gpu"),
+                           (dataclasses.replace(big, matmul_precision="bf16_invariant"), "gpu")):
+        assert vla.resolve_attention("auto", other, backend=backend) == "xla", (other, backend)
+    # a named attention is kept as given (VLAConfig refuses what cannot compute)
+    assert vla.resolve_attention("xla", big, backend="gpu") == "xla"
+    assert vla.resolve_attention("cudnn", big, backend="cpu") == "cudnn"
+
+
 def test_tiled_views_give_one_patch_grid_per_view():
     one, two = vla.VLAConfig(image_size=16, patch_size=8), vla.VLAConfig(image_size=16, patch_size=8, n_views=2)
     assert two.image_shape == (16, 32, 3) and two.n_patches == 2 * one.n_patches

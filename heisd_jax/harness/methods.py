@@ -68,7 +68,7 @@ class Numerics:
     matmul_precision: str = vla.VLAConfig.matmul_precision
     target_scale: str = scale.SHIPPED
     unroll: bool = vla.VLAConfig.unroll
-    attention: str = vla.VLAConfig.attention
+    attention: str = vla.AUTO_ATTENTION
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,8 +112,9 @@ def numerics_config(cfg: vla.VLAConfig, numerics: Numerics, dtype: str) -> vla.V
     `in_numerics` returns), without making any parameters: what a decode-cost table is keyed by."""
     vla.check_attention(numerics.attention)
     big = scale.scaled_config(cfg, numerics.target_scale)
-    return dataclasses.replace(big, dtype=dtype, matmul_precision=numerics.matmul_precision or big.matmul_precision,
-                               unroll=numerics.unroll, attention=numerics.attention)
+    out = dataclasses.replace(big, dtype=dtype, matmul_precision=numerics.matmul_precision or big.matmul_precision,
+                              unroll=numerics.unroll, attention="xla")
+    return dataclasses.replace(out, attention=vla.resolve_attention(numerics.attention, out))
 
 
 def _show_trees(trees: tuple[tuple[int, int, int], ...]) -> str:
@@ -166,8 +167,10 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                      "compiles several times longer, runs slower on a CPU, and on a GPU is faster inside a compiled "
                      "loop but slower called from Python (BENCHMARKS.md)."),
         "attention": _S("attention", "How the prefill attends in the decoder: 'xla' (products and softmax as XLA "
-                        "fuses them) or 'cudnn' (cuDNN's fused attention; a GPU, bfloat16): at the 7B scale the "
-                        "prefill 1.1x faster (docs/scale.md).", vla.ATTENTIONS),
+                        "fuses them), 'cudnn' (cuDNN's fused attention; a GPU, bfloat16): at the 7B scale the "
+                        "prefill 1.1x faster (docs/scale.md), or 'auto': cudnn for an expanded target "
+                        "(target_scale) on a GPU in 16 bits without bf16_invariant products, xla elsewhere "
+                        "(vla.resolve_attention).", (vla.AUTO_ATTENTION, *vla.ATTENTIONS)),
     },
     spec_decode.SpecConfig: {
         "top_k": _S("top_k", "Draft tree: children kept per level (EAGLE-2 top-k)."),
@@ -590,18 +593,23 @@ def missing_cost_tables(name: str, batch_sizes, *, checkpoint: str | Path | None
 
 def check_fits(name: str, *, checkpoint: str | Path | None = None, **settings) -> None:
     """ValueError where method `name` at `settings` cannot decode with the target at
-    `checkpoint`: its draft trees, or its retrieved and recent candidates, need more KV-cache
-    slots than the target has (the check `make_policy` makes when it builds the policy).
-    Read from the target's config alone (a datastore's calibration changes no tree or
-    candidate count), so an entry point can refuse before it records or compiles anything."""
+    `checkpoint`: its numerics cannot run with it (`numerics_config`: a scale smaller than the
+    target, cuDNN's attention off a GPU or in float32), or its draft trees, or its retrieved and
+    recent candidates, need more KV-cache slots than the target has (the check `make_policy`
+    makes when it builds the policy). Read from the target's config alone (a datastore's
+    calibration changes no tree or candidate count), so an entry point can refuse before it
+    records or compiles anything."""
     method = get(name)
     given = check_settings(name, settings)
-    if "drafter" in method.loads:
-        _check_fits(name, _paths(method, checkpoint=checkpoint)["checkpoint"], given)
+    if "checkpoint" in method.loads:
+        _check_fits(name, _paths(method, checkpoint=checkpoint)["checkpoint"], given, "drafter" in method.loads)
 
 
-def _check_fits(name: str, target: Path, given: dict) -> None:  # apart: `checkpoint` is the module here
-    _config(name, given, None).decode.check_fits(checkpoint.read_config(target))
+def _check_fits(name: str, target: Path, given: dict, drafts: bool) -> None:  # apart: `checkpoint` is the module here
+    cfg, run = checkpoint.read_config(target), _config(name, given, None)
+    numerics_config(cfg, run.numerics, run.numerics.dtype or cfg.dtype)
+    if drafts:
+        run.decode.check_fits(cfg)
 
 
 def _missing_cost_tables(name: str, paths: dict[str, Path], given: dict, batch_sizes, cost_cache) -> list[int]:
