@@ -129,7 +129,8 @@ def main(argv):
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
         timing["host_split"] = {**host_phases.seconds,
                                 "other": timing["host_seconds"] - sum(host_phases.seconds.values())}
-        results_io.write_json_atomic(FLAGS.out, {"settings": settings, "episodes": results, "summary": summary,
+        results_io.write_json_atomic(FLAGS.out, {"settings": settings, "numerics": methods.numerics_ran(policy),
+                                                 "episodes": results, "summary": summary,
                                                  "timing": timing, **as_ar, **made})
         return summary
 

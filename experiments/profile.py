@@ -249,7 +249,7 @@ def main(argv):
         print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
     if FLAGS.out:
         results_io.write_json_atomic(FLAGS.out, {**results_io.provenance(cli.command_line()), "method": FLAGS.method,
-                                                 "settings": settings, "attention": getattr(meta.get("cfg"), "attention", None),
+                                                 "settings": settings, "numerics": methods.numerics_ran(policy),
                                                  "batch": FLAGS.batch, "steps": FLAGS.steps,
                                                  "device_loops": FLAGS.device_loops,
                                                  "parts": sorted(want),

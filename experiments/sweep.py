@@ -114,7 +114,8 @@ def run_cell(cell: dict, task_list, programs: Programs, progress) -> dict:
     timing["wall_seconds"] = time.perf_counter() - t0
     per_episode_al = [r["decode"]["tokens"] / max(r["decode"]["target_passes"], 1e-9)
                       for recs in results.values() for r in recs if r and "tokens" in r.get("decode", {})]
-    return {"cell": cell, "suite": summary["suites"].get(cell["suite"], {}), "tasks": summary["tasks"],
+    return {"cell": cell, "numerics": methods.numerics_ran(policy), "suite": summary["suites"].get(cell["suite"], {}),
+            "tasks": summary["tasks"],
             "timing": timing, "episode_acceptance_length": per_episode_al, **_provenance(),
             "finished_at": time.strftime("%Y-%m-%dT%H:%M:%S")}
 

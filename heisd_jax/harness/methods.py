@@ -569,6 +569,14 @@ def make_policy(name: str, env: TabletopEnv, *, checkpoint: str | Path | None = 
                         calibrate_costs=calibrate_costs, log=log)
 
 
+def numerics_ran(policy: Policy) -> dict:
+    """How a built policy's model computes (`vla.NUMERICS` of its config: the dtype read from
+    the checkpoint where none was given, `attention` resolved from auto), for a results file
+    to say what ran; {} for a policy without a VLA (the expert)."""
+    cfg = policy.meta.get("cfg")
+    return {} if cfg is None else {k: getattr(cfg, k) for k in vla.NUMERICS}
+
+
 def _paths(method: Method, **given: str | Path | None) -> dict[str, Path]:
     """The files `method` loads: those given, else the shipped ones."""
     return {k: Path(given[k] if given.get(k) is not None else DEFAULT_PATHS[k]) for k in method.loads}
