@@ -237,8 +237,7 @@ def main(argv):
                    "bin_distance_to_ar_replay_per_dim": off_ar.mean(0).round(3).tolist(),
                    "reversed_vs_ar_replay_per_dim": (off_ar >= N_BINS // 2).mean(0).round(3).tolist(),
                    "replay_steps": int(t_idx.shape[0]), "seconds": {k: round(v, 1) for k, v in seconds.items()}}
-            if name != "prefill":
-                row["numerics"] = methods.numerics_ran(policy)
+            row["numerics"] = methods.numerics_ran(policy)
             if "target_passes" in stats_all:
                 row["tokens_per_target_pass"] = stats_all.get("tokens", 7 * n_act) / max(stats_all["target_passes"], 1e-9)
             if policy.meta.get("cost_table") is not None:

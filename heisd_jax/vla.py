@@ -44,6 +44,7 @@ from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
 NEG_INF = -1e9
 ATTENTIONS = ("xla", "cudnn")  # VLAConfig.attention
+FUSED_ATTENTION_DTYPES = ("bfloat16", "float16")  # the dtypes cuDNN's fused attention computes in
 AUTO_ATTENTION = "auto"  # a method's default (`harness.methods.Numerics`): `resolve_attention` picks one
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
@@ -136,7 +137,7 @@ class VLAConfig:
             raise ValueError(f"matmul_precision {self.matmul_precision!r}: valid are {', '.join(MATMUL_PRECISIONS)}")
         if self.attention not in ATTENTIONS:
             raise ValueError(f"attention {self.attention!r}: valid are {', '.join(ATTENTIONS)}")
-        if self.attention == "cudnn" and self.dtype not in ("bfloat16", "float16"):
+        if self.attention == "cudnn" and self.dtype not in FUSED_ATTENTION_DTYPES:
             raise ValueError(f"attention 'cudnn' computes in bfloat16 or float16, not {self.dtype}; "
                              f"valid for {self.dtype}: xla")
         if self.n_views < 1:
@@ -414,7 +415,7 @@ def resolve_attention(attention: str, cfg: VLAConfig, backend: str | None = None
     is not measured to pay (in the 7B vision tower's 8 heads it was slower)."""
     if attention != AUTO_ATTENTION:
         return attention
-    fused = ((backend or jax.default_backend()) == "gpu" and cfg.dtype in ("bfloat16", "float16")
+    fused = ((backend or jax.default_backend()) == "gpu" and cfg.dtype in FUSED_ATTENTION_DTYPES
              and cfg.per_layer and not cfg.batch_invariant)
     return "cudnn" if fused else "xla"
 
