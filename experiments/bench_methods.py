@@ -179,7 +179,6 @@ def main(argv):
             q = jax.jit(lambda s, k: retrieval.query(s, k, jnp.zeros((b,), jnp.int32), 4))
             query_ms[b] = 1e3 * median_seconds(lambda: q(store, keys), max(FLAGS.reps, 10))
             print(f"B={b:<4} retrieval query ({store.size} entries): {query_ms[b]:.3f} ms", flush=True)
-    prefill = prefill_policy(env) if FLAGS.ceiling else None
     for b in sizes:
         t_idx, e_idx = rollout.replay_lanes(running, min(FLAGS.record_envs, b * FLAGS.lane_envs), b)
         sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
@@ -188,9 +187,12 @@ def main(argv):
         base = None
         todo = list(method_list) + ([("prefill", {})] if FLAGS.ceiling else [])
         for name, settings in todo:
+            # The last method's weights, executable and outputs go before the next is built: at 7B
+            # and batch 256 two methods' buffers do not fit on one GPU together.
+            policy = fn = compiled = out = None
             t_build = time.perf_counter()
             if name == "prefill":
-                policy = prefill
+                policy = prefill_policy(env)
             else:
                 try:
                     policy = methods.make_policy(name, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
