@@ -235,21 +235,34 @@ def choose(costs: Costs, state: BudgetState, opts: tuple[Option, ...], any_retri
 
 
 def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], costs: Costs, chosen,
-           rounds) -> BudgetState:
+           rounds, ar_retrieval_rounds=-1.0) -> BudgetState:
     """After option `chosen` ran and the batch needed `rounds` draft rounds: its estimate
     moves towards `rounds` (replaced on its first run, weight `retry_weight` after idling,
     else `decay`) and its long-run mean takes the observation in; every other option's
     estimate returns towards its long-run mean by `forget` (options never run keep their
-    prior), and its idle time grows by this step's predicted time."""
+    prior), and its idle time grows by this step's predicted time.
+
+    `ar_retrieval_rounds` (>= 0 where known): the rounds `ar+retrieval` would have needed on
+    this step. Every option that verifies the candidates accepts the same prefix of them, and
+    `ar+retrieval` then needs one single-token pass per token left after the prefill's own
+    (`hybrid.decode_auto` counts them), so a step run by a tree after the candidates observes
+    `ar+retrieval` too, as if it had run. Without it, `ar+retrieval`'s estimate would be
+    learnt only on the steps it is chosen, which it is when that estimate is low: its
+    outcome is all or little (no rounds when a candidate is accepted whole, up to six
+    passes when none is), so a few whole acceptances made it look cheapest until a miss."""
     hit = jnp.arange(len(opts)) == chosen
+    is_ar_retrieval = jnp.asarray([o.tree is None and o.retrieval for o in opts])
+    seen = hit | (is_ar_retrieval & (jnp.asarray(ar_retrieval_rounds) >= 0))
+    observed = jnp.where(hit, rounds, ar_retrieval_rounds)
     weight = jnp.where(state.runs == 0, 1.0, jnp.where(state.idle_ms > 0, cfg.retry_weight, cfg.decay))
-    ran = state.rounds + weight * (rounds - state.rounds)
+    ran = state.rounds + weight * (observed - state.rounds)
     idle = state.rounds + cfg.forget * (state.mean_rounds - state.rounds)
-    runs = state.runs + hit
-    mean = jnp.where(hit, state.mean_rounds + (rounds - state.mean_rounds) / jnp.maximum(runs, 1.0), state.mean_rounds)
+    runs = state.runs + seen
+    mean = jnp.where(seen, state.mean_rounds + (observed - state.mean_rounds) / jnp.maximum(runs, 1.0),
+                     state.mean_rounds)
     step_ms = costs.fixed_ms[chosen] + rounds * costs.round_ms[chosen]
-    return BudgetState(rounds=jnp.where(hit, ran, idle), runs=runs,
-                       idle_ms=jnp.where(hit, 0.0, state.idle_ms + step_ms), mean_rounds=mean)
+    return BudgetState(rounds=jnp.where(seen, ran, idle), runs=runs,
+                       idle_ms=jnp.where(seen, 0.0, state.idle_ms + step_ms), mean_rounds=mean)
 
 
 def simulate(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...], true_rounds, steps: int,
@@ -301,5 +314,6 @@ def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...],
             r = drafter_mean[opt.name]
         spent[t] = float(fixed[o] + r * per_round[o])
         chosen[opt.name] += 1
-        state = update(cfg, state, opts, costs, o, r)
+        seen_ar = opt.retrieval and retrieval_step and "ar+retrieval" in rounds
+        state = update(cfg, state, opts, costs, o, r, float(rounds["ar+retrieval"][t]) if seen_ar else -1.0)
     return spent, chosen

@@ -341,7 +341,14 @@ def decode_auto(params, model: target_model.Model, hcfg: HybridConfig, bstate: b
         branches.append(branch(continuation="ar"))
     branches += [branch(spec=budget_lib.tree_spec(hcfg.spec, t), continuation="drafter") for t in trees]
     tokens, stats = jax.lax.switch(jnp.asarray(budget_lib.branch_index(opts, trees))[option], branches, None)
-    bstate = budget_lib.update(hcfg.budget, bstate, opts, params["costs"], option, jnp.max(stats["rounds"]))
+    ran = ~skip
+    # what `ar+retrieval` would have needed after the same accepted prefix: a pass per token
+    # left after the prefill's (rows that verified no candidate: acc 0, six passes)
+    ar_rounds = jnp.max(jnp.where(ran, jnp.maximum(ACTION_DIM - 1 - stats["retrieval_accepted"], 0.0), 0.0))
+    updated = budget_lib.update(hcfg.budget, bstate, opts, params["costs"], option, jnp.max(stats["rounds"]),
+                                jnp.where(wants_retrieval, ar_rounds, -1.0))
+    # A step where every row skips ran no option: it says nothing of any option's rounds.
+    bstate = jax.tree.map(lambda new, old: jnp.where(jnp.any(ran), new, old), updated, bstate)
     b = cand.shape[0]
     for i, opt in enumerate(opts):
         stats[f"budget_{opt.name}"] = jnp.full((b,), option == i, jnp.float32)

@@ -100,6 +100,20 @@ def test_running_estimates():
     assert float(s.rounds[1]) == pytest.approx(4.0 + 0.75 * (0.0 - 4.0)) and float(s.idle_ms[1]) == 0.0
 
 
+def test_a_tree_after_the_candidates_also_observes_ar_after_them():
+    cfg = budget.BudgetConfig(mode="auto", trees=TREES, decay=0.5)
+    costs = _costs([1.0] * len(ALL_OPTS), [0.1] * len(ALL_OPTS))
+    ar_ret, tree_ret = ALL_OPTS.index(budget.Option(None, True)), ALL_OPTS.index(budget.Option(TREES[0], True))
+    s0 = budget.init_state(ALL_OPTS)
+    s = budget.update(cfg, s0, ALL_OPTS, costs, tree_ret, 1.0, 4.0)  # the accepted prefix left 4 AR passes
+    assert float(s.rounds[ar_ret]) == 4.0 and float(s.runs[ar_ret]) == 1 and float(s.idle_ms[ar_ret]) == 0.0
+    assert float(s.rounds[tree_ret]) == 1.0
+    s = budget.update(cfg, s, ALL_OPTS, costs, tree_ret, 1.0, 0.0)  # a whole acceptance: weight `decay`
+    assert float(s.rounds[ar_ret]) == 2.0 and float(s.mean_rounds[ar_ret]) == 2.0
+    unknown = budget.update(cfg, s0, ALL_OPTS, costs, tree_ret, 1.0)  # no candidates verified: nothing seen
+    assert float(unknown.runs[ar_ret]) == 0 and float(unknown.rounds[ar_ret]) == float(s0.rounds[ar_ret])
+
+
 
 def test_a_passing_slow_phase_is_forgotten():
     """An option whose long run beats AR comes back after a few slow steps made it look
@@ -214,18 +228,28 @@ def test_strict_equals_ar_under_every_budget_option(tiny_hybrid, verify):
                                       use, skip)
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens, err_msg=opt.name)
         assert np.all(np.asarray(stats[f"budget_{opt.name}"]) == 1.0)
-        assert float(bstate.runs[i]) == 1 and float(jnp.sum(bstate.runs)) == 1
+        assert float(bstate.runs[i]) == 1
+        acc = np.asarray(stats["retrieval_accepted"])
+        if opt.retrieval:  # the candidates' accepted prefix also says what ar+retrieval would have needed
+            assert float(bstate.runs[1]) == 1 and float(jnp.sum(bstate.runs)) == 1 + (i != 1)
+            assert float(bstate.rounds[1]) == np.max(np.maximum(6 - acc, 0))
+        else:
+            assert float(jnp.sum(bstate.runs)) == 1
         passes = np.asarray(stats["target_passes"])
         if opt.tree is None and not opt.retrieval:
             np.testing.assert_array_equal(passes, 7)
         if opt.tree is None and opt.retrieval:  # one pass per token the candidates did not give, no drafter
-            acc = np.asarray(stats["retrieval_accepted"])
             np.testing.assert_array_equal(passes, 1 + (verify == "separate") * np.asarray(use)
                                           + np.maximum(6 - acc, 0))
             np.testing.assert_array_equal(np.asarray(stats["drafter_passes"]), 0)
             assert float(bstate.rounds[i]) == np.max(np.maximum(6 - acc, 0))  # the batch's AR steps
         verified = np.asarray(stats["retrieval_verified"])
         np.testing.assert_array_equal(verified, np.asarray(use) if opt.retrieval else 0)
+    # A step where every row skips runs no option: the running estimates stay as they were.
+    state = budget.update(AUTO.budget, budget.init_state(ALL_OPTS), ALL_OPTS, p["costs"], 3, 2.0)
+    _, stats, after = _auto(p, CFG, hcfg, state, jnp.asarray(3), obs, cand, valid, use, jnp.ones((B,), bool))
+    assert np.all(np.asarray(stats["skipped"]) == 1.0)
+    jax.tree.map(np.testing.assert_array_equal, after, state)
 
 
 def test_step_with_auto_budget_keeps_its_state(tiny_hybrid):
@@ -246,9 +270,10 @@ def test_step_with_auto_budget_keeps_its_state(tiny_hybrid):
     for _ in range(2):
         _, tokens, state, stats = run(p, CFG, AUTO, spec, tok, state, obs, kin, jnp.arange(B))
         np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
-    # Every row in the retrieval mode, candidates exact: the retrieval option ran twice, 0 rounds.
-    np.testing.assert_array_equal(np.asarray(state.budget.runs), [0, 0, 0, 2, 0, 0])
-    assert float(state.budget.rounds[3]) == 0.0
+    # Every row in the retrieval mode, candidates exact: the retrieval option ran twice, 0 rounds,
+    # and so would ar+retrieval have (observed alongside).
+    np.testing.assert_array_equal(np.asarray(state.budget.runs), [0, 2, 0, 2, 0, 0])
+    assert float(state.budget.rounds[3]) == 0.0 and float(state.budget.rounds[1]) == 0.0
     with pytest.raises(ValueError, match='needs params\\["costs"\\]'):
         hybrid.step(params | {"store": store}, CFG, AUTO, spec, tok, hybrid.init_state(B, spec, AUTO), obs, kin,
                     jnp.arange(B))
