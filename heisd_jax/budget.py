@@ -17,7 +17,9 @@ Predicted time of option o: `fixed_ms[o] + rounds[o] * round_ms[o]`:
     round of o's tree, and everything else of one action (prefill with or without the
     candidates' block, the drafter's prompt pass, the hand-over); AR: its whole decode;
   - `rounds[o]` (`BudgetState`): a running estimate (exponential moving average) of the
-    batch's draft rounds per action under o, updated whenever o runs. Options start from
+    batch's draft rounds per action under o, updated whenever o runs (`ar+retrieval` also
+    whenever a tree after the candidates runs: the accepted prefix fixes its passes; a step
+    where every row skips updates nothing). Options start from
     the fewest rounds their tree allows (0 with retrieval: a whole accepted candidate;
     ceil(6 / (depth + 1)) without), so every option that could win gets tried once; one
     that cannot beat AR even then (`dominated`) never runs.
@@ -246,10 +248,11 @@ def update(cfg: BudgetConfig, state: BudgetState, opts: tuple[Option, ...], cost
     this step. Every option that verifies the candidates accepts the same prefix of them, and
     `ar+retrieval` then needs one single-token pass per token left after the prefill's own
     (`hybrid.decode_auto` counts them), so a step run by a tree after the candidates observes
-    `ar+retrieval` too, as if it had run. Without it, `ar+retrieval`'s estimate would be
-    learnt only on the steps it is chosen, which it is when that estimate is low: its
+    `ar+retrieval` too, as if it had run. Learnt only on the steps it is chosen, which are
+    those where its estimate is low, `ar+retrieval`'s estimate would be biased low: its
     outcome is all or little (no rounds when a candidate is accepted whole, up to six
-    passes when none is), so a few whole acceptances made it look cheapest until a miss."""
+    passes when none is), so a few whole acceptances would make it look cheapest, and the
+    next miss cost six passes."""
     hit = jnp.arange(len(opts)) == chosen
     is_ar_retrieval = jnp.asarray([o.tree is None and o.retrieval for o in opts])
     seen = hit | (is_ar_retrieval & (jnp.asarray(ar_retrieval_rounds) >= 0))
@@ -288,7 +291,8 @@ def simulate_recorded(cfg: BudgetConfig, costs: Costs, opts: tuple[Option, ...],
     `rounds`: per step, 'skipped' and 'drafter' (bool: no target pass; a drafter-mode step, where no option needs
     retrieval), and the draft rounds of 'ar+retrieval' and of each tree by name (after the
     candidates on retrieval steps, from the prefill on drafter steps), as replaying each option
-    alone measures them (experiments/studies/budget_replay.py). A tree from the prefill alone
+    alone measures them (experiments/studies/budget_replay.py); a retrieval step run by a tree
+    after the candidates observes 'ar+retrieval''s rounds too, as the decoder does. A tree from the prefill alone
     on a retrieval step, which no replay measures, is priced at its mean on drafter steps (its
     prior where none was recorded); plain AR needs no rounds. On the host."""
     prices = costs if prices is None else prices
