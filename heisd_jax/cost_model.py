@@ -28,7 +28,8 @@ A table is tied to its key (device, platform, jax version, the model's architect
 matmul precision, batch size, options, number of candidates): costs depend on the shapes, not
 on the weights' values, so a retrained model of the same architecture shares its table, and a
 7B expansion's key costs nothing to compute. `load_cached` reads the cached file only if its key
-equals the current one. Measuring is always asked for explicitly (`load_or_calibrate(...,
+equals the current one, or, where none is, a table whose key differs only in holding more draft
+trees, cut down to this key's (`subset`: each option is its own measured program). Measuring is always asked for explicitly (`load_or_calibrate(...,
 measure=True)`, the entry points' --calibrate_costs): a method never spends minutes
 calibrating behind a user's back.
 """
@@ -246,19 +247,60 @@ class MissingCostTable(ValueError):
     """No cost table is cached for this device, model, settings and batch size."""
 
 
+def _tree_of(option: str) -> str | None:
+    """'4x2x8+retrieval' -> '4x2x8'; 'ar', 'ar+retrieval' -> None."""
+    base = option.removesuffix("+retrieval")
+    return None if base == "ar" else base
+
+
+def subset(table: CostTable, key: dict) -> CostTable | None:
+    """`table` cut down to `key`'s options, where `key` differs from its key only in holding
+    fewer draft trees (each option of a table is measured as its own program, so its entries
+    do not depend on which other trees were measured beside it); else None."""
+    trees = {_tree_of(o) for o in key["options"]} - {None}
+    keep = [i for i, o in enumerate(table.options) if _tree_of(o) is None or _tree_of(o) in trees]
+    if ({**table.key, "options": key["options"]} != key or [table.options[i] for i in keep] != key["options"]
+            or len(keep) == len(table.options)):
+        return None
+    pick = lambda values: [values[i] for i in keep]  # noqa: E731
+    per_tree = ("round_alone_ms", "zero_round_ms")  # pieces named by option or tree
+    pieces = {k: ({n: v for n, v in table.pieces[k].items() if _tree_of(n) is None or _tree_of(n) in trees}
+                  if k in per_tree else v) for k, v in table.pieces.items()}
+    return dataclasses.replace(table, key=key, options=list(key["options"]), fixed_ms=pick(table.fixed_ms),
+                               round_ms=pick(table.round_ms), decode_ms=pick(table.decode_ms),
+                               decode_rounds=pick(table.decode_rounds), pieces=pieces)
+
+
+def _read(path: Path, log: Callable[[str], None]) -> CostTable | None:
+    try:
+        return CostTable(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError) as e:
+        log(f"cost table {path} is unreadable ({e})")
+        return None
+
+
 def load_cached(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
                 directory: str | Path | None = DEFAULT_CACHE, log: Callable[[str], None] = print) -> CostTable | None:
-    """The cached table for this key, or None (logging why: none, another key, unreadable)."""
+    """The cached table for this key, or None (logging why: none, another key, unreadable).
+    Where none is cached under this key, a table of the same key measured with more draft trees
+    serves, cut down to this key's trees (`subset`): `trees=4x2x8` reads the default's table."""
     if directory is None:
         return None
     key = table_key(cfg, hcfg, batch)
     path = cache_file(directory, key)
     if not path.exists():
+        for other in sorted(Path(directory).glob("costs_*.json")):
+            table = _read(other, lambda _: None)
+            try:
+                cut = subset(table, key) if table is not None else None
+            except (TypeError, KeyError, AttributeError, IndexError):  # a damaged file: not this key's
+                cut = None
+            if cut is not None:
+                log(f"cost table from {other} (its {', '.join(cut.options)})")
+                return cut
         return None
-    try:
-        table = CostTable(**json.loads(path.read_text()))
-    except (OSError, ValueError, TypeError) as e:
-        log(f"cost table {path} is unreadable ({e})")
+    table = _read(path, log)
+    if table is None:
         return None
     if table.key != key or len(table.fixed_ms) != len(key["options"]):
         log(f"cost table {path} was measured for another setting ({_diff(table.key, key)})")

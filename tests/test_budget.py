@@ -349,6 +349,40 @@ def test_calibration_measures_and_caches(tiny_hybrid, tmp_path, monkeypatch):
     assert cost_model.load_or_calibrate(params, CFG, one, 8, tmp_path, logs.append, measure=False).key["batch"] == 8
 
 
+def test_a_table_with_more_trees_serves_fewer(tmp_path):
+    """Each option of a cost table is its own measured program, so a table of the default's two
+    trees serves a one-tree setting (its rows cut out), never another mode, tree or batch."""
+    n = len(ALL_OPTS)
+    names = [o.name for o in ALL_OPTS]
+    full = cost_model.CostTable(
+        key=cost_model.table_key(CFG, AUTO, 2), options=names, fixed_ms=[float(i) for i in range(n)],
+        round_ms=[0.0] + [0.5 + i for i in range(1, n)], decode_ms=[10.0 + i for i in range(n)],
+        decode_rounds=[float(i % 3) for i in range(n)],
+        pieces={"prefill_ms": {"0": 1.0}, "cached_ms": {"1": 0.2}, "query_ms": 0.01,
+                "round_alone_ms": {"2x1x2": 0.3, "2x2x4": 0.4},
+                "zero_round_ms": {"ar+retrieval": 1.1, "2x1x2+retrieval": 1.2, "2x2x4+retrieval": 1.3}},
+        seconds=1.0)
+    cost_model.results_io.write_json_atomic(cost_model.cache_file(tmp_path, full.key), dataclasses.asdict(full))
+    logs = []
+    assert cost_model.load_cached(CFG, AUTO, 2, tmp_path, logs.append) == full
+    second = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=TREES[1:]))
+    cut = cost_model.load_cached(CFG, second, 2, tmp_path, logs.append)
+    keep = [names.index(o) for o in ("ar", "ar+retrieval", "2x2x4", "2x2x4+retrieval")]
+    assert cut.key == cost_model.table_key(CFG, second, 2) and cut.options == [names[i] for i in keep]
+    assert cut.fixed_ms == [full.fixed_ms[i] for i in keep] and cut.round_ms == [full.round_ms[i] for i in keep]
+    assert cut.decode_ms == [full.decode_ms[i] for i in keep]
+    assert cut.pieces["round_alone_ms"] == {"2x2x4": 0.4}
+    assert set(cut.pieces["zero_round_ms"]) == {"ar+retrieval", "2x2x4+retrieval"} and "its ar" in logs[-1]
+    # Not another mode (the options differ in more than trees), tree or batch size.
+    drafter_only = dataclasses.replace(second, mode="drafter")
+    other_tree = dataclasses.replace(AUTO, budget=budget.BudgetConfig(mode="auto", trees=((3, 1, 3),)))
+    assert cost_model.load_cached(CFG, drafter_only, 2, tmp_path, logs.append) is None
+    assert cost_model.load_cached(CFG, other_tree, 2, tmp_path, logs.append) is None
+    assert cost_model.load_cached(CFG, second, 4, tmp_path, logs.append) is None
+    (tmp_path / "costs_0000000000000000.json").write_text("{not json")  # a damaged file is passed over
+    assert cost_model.load_cached(CFG, second, 2, tmp_path, logs.append) == cut
+
+
 def test_bad_budget_settings_are_refused():
     with pytest.raises(ValueError, match="valid: auto, fixed"):
         budget.BudgetConfig(mode="sometimes")
