@@ -29,9 +29,9 @@ matmul precision, batch size, options, number of candidates): costs depend on th
 on the weights' values, so a retrained model of the same architecture shares its table, and a
 7B expansion's key costs nothing to compute. `load_cached` reads the cached file only if its key
 equals the current one, or, where none is, a table whose key differs only in holding more draft
-trees, cut down to this key's (`subset`: each option is its own measured program). Measuring is always asked for explicitly (`load_or_calibrate(...,
-measure=True)`, the entry points' --calibrate_costs): a method never spends minutes
-calibrating behind a user's back.
+trees, cut down to this key's (`subset`: each option is its own measured program). Measuring
+is always asked for explicitly (`load_or_calibrate(..., measure=True)`, the entry points'
+--calibrate_costs): a method never spends minutes calibrating behind a user's back.
 """
 
 from __future__ import annotations
@@ -296,7 +296,7 @@ def load_cached(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int,
             except (TypeError, KeyError, AttributeError, IndexError):  # a damaged file: not this key's
                 cut = None
             if cut is not None:
-                log(f"cost table from {other} (its {', '.join(cut.options)})")
+                log(f"cost table from {other}, cut to {', '.join(cut.options)}")
                 return cut
         return None
     table = _read(path, log)
