@@ -72,7 +72,8 @@ def table_key(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict
     model = cfg.architecture()
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll,
-            **({"attention": cfg.attention} if cfg.attention != vla.VLAConfig.attention else {}), "batch": int(batch),
+            **({"attention": cfg.attention} if cfg.attention != vla.VLAConfig.attention else {}),
+            **({"patchify": cfg.patchify} if cfg.patchify != vla.VLAConfig.patchify else {}), "batch": int(batch),
             "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}

@@ -44,13 +44,14 @@ from heisd_jax.tokenizer import ACTION_DIM, INVALID_ID, N_BINS
 
 NEG_INF = -1e9
 ATTENTIONS = ("xla", "cudnn")  # VLAConfig.attention
+PATCHIFIES = ("conv", "dense")  # VLAConfig.patchify
 FUSED_ATTENTION_DTYPES = ("bfloat16", "float16")  # the dtypes cuDNN's fused attention computes in
 AUTO_ATTENTION = "auto"  # a method's default (`harness.methods.Numerics`): `resolve_attention` picks one
 DRAFT_SLOTS = 75  # cache slots past the prompt: the action and the largest draft tree or candidate set
 
 
 # VLAConfig's fields that set how, not what, it computes
-NUMERICS = ("dtype", "matmul_precision", "unroll", "attention")
+NUMERICS = ("dtype", "matmul_precision", "unroll", "attention", "patchify")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,6 +81,10 @@ class VLAConfig:
     # scale's 277-token prompt the fused kernel saves what three kernels per layer and the
     # strided read of their output cost (docs/scale.md).
     attention: str = "xla"
+    # How the vision tower cuts the image into patch embeddings (PATCHIFIES), one function with
+    # the same parameters: "conv", a convolution whose stride is its kernel (cuDNN's on a GPU);
+    # "dense", the same sums as one matrix product over the patches (`Patchify`).
+    patchify: str = "conv"
     # Larger architectures (`heisd_jax.scale` expands a trained target into them); 0 means
     # "as the fields above", which is how every trained checkpoint is built.
     vocab: int = 0  # 0: text_vocab + 256; more: unused ids after the action ids
@@ -137,6 +142,8 @@ class VLAConfig:
             raise ValueError(f"matmul_precision {self.matmul_precision!r}: valid are {', '.join(MATMUL_PRECISIONS)}")
         if self.attention not in ATTENTIONS:
             raise ValueError(f"attention {self.attention!r}: valid are {', '.join(ATTENTIONS)}")
+        if self.patchify not in PATCHIFIES:
+            raise ValueError(f"patchify {self.patchify!r}: valid are {', '.join(PATCHIFIES)}")
         if self.attention == "cudnn" and self.dtype not in FUSED_ATTENTION_DTYPES:
             raise ValueError(f"attention 'cudnn' computes in bfloat16 or float16, not {self.dtype}; "
                              f"valid for {self.dtype}: xla")
@@ -467,6 +474,31 @@ def _attend_at_ar_slots(q, k, v, layer_k, layer_v, cache_mask, src, scale, dtype
             + jnp.einsum("bhtk,btkhd->bthd", attn[..., -1:], v[:, :, None]))
 
 
+class Patchify(nn.Module):
+    """Non-overlapping p x p patches of [B, H, W, C] -> [B, H/p, W/p, features]: the convolution
+    whose stride is its kernel, computed as one matrix product of the patches (flattened in the
+    kernel's (row, column, channel) order) and the kernel reshaped to [p*p*C, features], plus the
+    bias. The parameters are `nn.Conv`'s (names, shapes, initialisers), so a checkpoint serves
+    either form. Why a product: on a GPU XLA runs a convolution as a cuDNN call that a CUDA graph
+    (a command buffer) cannot hold, so every conditional with the prefill in a branch -- a decode
+    step's skip and budget choices -- is then run from the host, which reads its predicate and
+    launches the graphs after it; a product is a GEMM the graph holds."""
+
+    features: int
+    patch: int
+    dtype: str
+
+    @nn.compact
+    def __call__(self, x):
+        p, c = self.patch, x.shape[-1]
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (p, p, c, self.features), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+        x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+        b, h, w, _ = x.shape
+        patches = x.reshape(b, h // p, p, w // p, p, c).transpose(0, 1, 3, 2, 4, 5).reshape(b, h // p, w // p, -1)
+        return patches @ kernel.reshape(p * p * c, self.features) + bias
+
+
 class VisionEncoder(nn.Module):
     """Patchify + a small bidirectional ViT: [B, H, W, 3] uint8 -> [B, image_tokens, D]. Tiled
     views are patchified alike; the learned position embedding tells them apart. A scaled-up
@@ -480,7 +512,10 @@ class VisionEncoder(nn.Module):
         cfg = self.cfg
         w, eps = cfg.vision_width, cfg.vision_norm_eps
         x = image.astype(jnp.float32) / 127.5 - 1.0
-        x = nn.Conv(w, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype, name="patchify")(x)
+        if cfg.patchify == "dense":
+            x = Patchify(w, cfg.patch_size, cfg.dtype, name="patchify")(x)
+        else:
+            x = nn.Conv(w, (cfg.patch_size, cfg.patch_size), strides=cfg.patch_size, dtype=cfg.dtype, name="patchify")(x)
         b = x.shape[0]
         x = x.reshape(b, -1, w)
         mask = None

@@ -51,7 +51,7 @@ def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, t
     assert res["settings"]["method"] == "ar" and res["settings"]["tasks"] == TASKS.split(",")
     # what ran: the checkpoint's dtype, attention resolved from auto (XLA's off a GPU)
     assert res["numerics"] == {"dtype": "float32", "matmul_precision": "float32", "unroll": False,
-                               "attention": "xla"}
+                               "attention": "xla", "patchify": "conv"}
     split = res["timing"]["compile_split"]  # the program --compile_only compiled, loaded from the store
     assert set(split) == {"trace", "lower", "xla", "store"} and split["trace"] == split["xla"] == 0.0
     assert sum(split.values()) == pytest.approx(res["timing"]["compile_seconds"], rel=1e-6)

@@ -327,7 +327,7 @@ def test_heisd_method_loads_the_shipped_checkpoints_and_checks_settings():
     with pytest.raises(ValueError, match="pass batch_size"):  # budget=auto (the default) measures costs at it
         methods.make_policy("heisd", env)
     assert methods.check_settings("heisd", {"skip": "false", "k_skip": "2"}) == {"skip": False, "k_skip": 2}
-    with pytest.raises(ValueError, match="unknown settings \\['tau'\\]; valid: dtype, matmul_precision, target_scale, unroll, attention, top_k"):
+    with pytest.raises(ValueError, match="unknown settings \\['tau'\\]; valid: dtype, matmul_precision, target_scale, unroll, attention, patchify, top_k"):
         methods.check_settings("heisd", {"tau": 1})
     with pytest.raises(ValueError, match="not a boolean"):
         methods.check_settings("heisd", {"skip": "maybe"})

@@ -141,6 +141,22 @@ def test_fused_attention_is_a_numerics_setting_refused_where_it_cannot_run():
         assert methods.numerics_config(tiny_models.CFG, methods.Numerics(dtype="bfloat16"), "bfloat16").attention == "xla"
 
 
+def test_patchify_is_a_numerics_setting_that_keys_cost_tables():
+    import tiny_models
+    from heisd_jax import cost_model, hybrid
+
+    numerics = methods.config("heisd", {"patchify": "dense"}).numerics
+    cfg = methods.numerics_config(tiny_models.CFG, numerics, "float32")
+    assert numerics.patchify == cfg.patchify == "dense"
+    assert methods.numerics_config(tiny_models.CFG, methods.Numerics(), "float32").patchify == "conv"
+    with pytest.raises(ValueError, match="unknown patchify 'bad'; valid: conv, dense"):
+        methods.config("ar", {"patchify": "bad"})
+    # a table measured with one form does not price the other; the default's key is unchanged
+    hcfg = hybrid.HybridConfig()
+    conv_key = cost_model.table_key(tiny_models.CFG, hcfg, 1)
+    assert "patchify" not in conv_key and cost_model.table_key(cfg, hcfg, 1)["patchify"] == "dense"
+
+
 def test_what_does_not_fit_the_targets_cache_is_refused_from_configs_alone():
     # The shipped target: every decoding method's defaults fit; more candidates than its cache
     # holds are refused with the limit, as make_policy would refuse them after loading.

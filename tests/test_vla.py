@@ -146,6 +146,29 @@ def test_auto_attention_fuses_only_a_large_16_bit_model_on_a_gpu():
     assert vla.resolve_attention("cudnn", big, backend="cpu") == "cudnn"
 
 
+def test_dense_patchify_is_the_convolution():
+    # One function, one parameter tree: a checkpoint serves either form, and the prefill's logits
+    # agree to rounding (on a CPU, bit for bit) over two tiled views in float32 and bfloat16.
+    conv = vla.VLAConfig(image_size=16, patch_size=8, n_views=2, vision_layers=1, d_model=32, n_layers=2, n_heads=4,
+                         mlp_dim=64)
+    dense = dataclasses.replace(conv, patchify="dense")
+    params = vla.init_params(conv, jax.random.PRNGKey(1))
+    twin = vla.init_params(dense, jax.random.PRNGKey(1))
+    assert jax.tree.structure(params) == jax.tree.structure(twin)
+    for a, b in zip(jax.tree.leaves(params), jax.tree.leaves(twin)):
+        np.testing.assert_array_equal(a, b)
+    rng = np.random.default_rng(3)
+    obs = dataclasses.replace(_obs(), image=jnp.asarray(rng.integers(0, 255, (B, *conv.image_shape)), jnp.uint8))
+    for dtype, tol in (("float32", 1e-5), ("bfloat16", 0.1)):
+        p = jax.tree.map(lambda x: x.astype(dtype), params)
+        want = vla.prefill(p, dataclasses.replace(conv, dtype=dtype), obs)[0].astype(jnp.float32)
+        got = vla.prefill(p, dataclasses.replace(dense, dtype=dtype), obs)[0].astype(jnp.float32)
+        np.testing.assert_allclose(got, want, atol=tol)
+    with pytest.raises(ValueError, match="patchify 'im2col': valid are conv, dense"):
+        vla.VLAConfig(patchify="im2col")
+    assert "patchify" not in vla.VLAConfig().architecture()  # numerics: not a checkpoint's
+
+
 def test_tiled_views_give_one_patch_grid_per_view():
     one, two = vla.VLAConfig(image_size=16, patch_size=8), vla.VLAConfig(image_size=16, patch_size=8, n_views=2)
     assert two.image_shape == (16, 32, 3) and two.n_patches == 2 * one.n_patches

@@ -63,12 +63,14 @@ class Numerics:
     target's own, the dtype its checkpoint stores its parameters in: float32 for the shipped
     target, bfloat16 for one exported with `train --export_param_dtype=bfloat16`), the precision
     of float32 matrix products, the architecture the target is expanded to, whether the
-    inference passes are unrolled, and how the prefill attends (`vla.VLAConfig.attention`)."""
+    inference passes are unrolled, how the prefill attends (`vla.VLAConfig.attention`) and how
+    the vision tower patchifies (`vla.VLAConfig.patchify`)."""
     dtype: str | None = None
     matmul_precision: str = vla.VLAConfig.matmul_precision
     target_scale: str = scale.SHIPPED
     unroll: bool = vla.VLAConfig.unroll
     attention: str = vla.AUTO_ATTENTION
+    patchify: str = vla.VLAConfig.patchify
 
 
 @dataclasses.dataclass(frozen=True)
@@ -113,7 +115,7 @@ def numerics_config(cfg: vla.VLAConfig, numerics: Numerics, dtype: str) -> vla.V
     vla.check_attention(numerics.attention)
     big = scale.scaled_config(cfg, numerics.target_scale)
     out = dataclasses.replace(big, dtype=dtype, matmul_precision=numerics.matmul_precision or big.matmul_precision,
-                              unroll=numerics.unroll, attention="xla")
+                              unroll=numerics.unroll, attention="xla", patchify=numerics.patchify)
     return dataclasses.replace(out, attention=vla.resolve_attention(numerics.attention, out))
 
 
@@ -171,6 +173,10 @@ SETTINGS: dict[type, dict[str, Setting]] = {
                         "prefill 1.1x faster (docs/scale.md), or 'auto': cudnn for an expanded target "
                         "(target_scale) on a GPU in 16 bits without bf16_invariant products, xla elsewhere "
                         "(vla.resolve_attention).", (vla.AUTO_ATTENTION, *vla.ATTENTIONS)),
+        "patchify": _S("patchify", "How the vision tower cuts the image into patch embeddings, the same function and "
+                       "parameters: 'conv' (a convolution; cuDNN's on a GPU) or 'dense' (one matrix product over the "
+                       "patches, which a CUDA graph holds, so the decode step's conditionals need not run from the "
+                       "host; vla.Patchify).", vla.PATCHIFIES),
     },
     spec_decode.SpecConfig: {
         "top_k": _S("top_k", "Draft tree: children kept per level (EAGLE-2 top-k)."),
