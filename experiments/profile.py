@@ -24,11 +24,14 @@ time per call on each device timeline (`heisd_jax.timing.kernel_summary`): where
 milliseconds go, kernel by kernel, and how much of a call the device spends waiting for the
 host (the call's median wall time less its kernels), with the longest waits and the host
 event each waited for (`timing.device_gaps`: a CUDA-graph launch, a `while`-loop condition
-copied to the host, argument handling). --hlo_dir writes the three calls' optimised HLO (gzipped
+copied to the host, argument handling), and what the host ran of the call's control flow itself
+(`timing.host_control`: conditionals and loops outside the CUDA graphs, their syncs, the graph
+launches' host time). --hlo_dir writes the three calls' optimised HLO (gzipped
 text), where those kernels' names (XLA's fusions) can be looked up.
 act and every decode part (not the env step) are compiled with
 `heisd_jax.xla_options.DEVICE_LOOPS`, as the public `heisd_jax.decode_action` is: on a GPU,
-the draft rounds' loop and the budget's conditionals recorded into command buffers, which
+the draft rounds' loop and the budget's conditionals recorded into command buffers where each
+of their branches can be (one holding a cuDNN convolution cannot: see `vla.Patchify`), which
 process-wide XLA_FLAGS would also impose on the physics program. --nodevice_loops compiles
 them with XLA's default command buffers (the comparison). --compiler_options adds per-program
 XLA options to those programs alone (say, how command buffers are updated between calls).
@@ -189,7 +192,7 @@ def main(argv):
         n_running += float(running.sum())
         states, dt = timing.timed(lambda: step(states, actions))
         times.setdefault("env_step", []).append(dt)
-    kernels, gaps = {}, {}
+    kernels, gaps, control = {}, {}, {}
     obs = vla_policy.observation(states)
     calls = {"act": (act, (params, states, pstate, act_keys)), "ar": (fns["ar"], (params, obs)),
              "env_step": (step, (states, actions))}
@@ -198,6 +201,7 @@ def main(argv):
             path = timing.trace_calls(lambda: fn(*args), 3, Path(FLAGS.trace_dir) / name)
             kernels[name] = timing.kernel_summary(path, 3, FLAGS.top) if path else {}
             gaps[name] = timing.device_gaps(path, top=FLAGS.top) if path else {}
+            control[name] = timing.host_control(path, 3) if path else {}
         if FLAGS.hlo_dir:
             timing.write_hlo(fn, args, Path(FLAGS.hlo_dir) / f"{name}.hlo.txt.gz")
     med = {k: 1e3 * float(np.median(v)) for k, v in times.items()}
@@ -245,6 +249,12 @@ def main(argv):
             for r in rows:
                 host = f"{r['host'][:60]} ({r['host_ms']:.2f} ms)" if r["host"] else "no host event"
                 print(f"    {r['ms']:7.3f} ms at {r['start_ms']:8.2f} ms, after {r['after'][:40]}: {host}")
+    for name, c in control.items():
+        if c:
+            conds = ", ".join(f"{k} x{v:g}" for k, v in c["conditionals"].items()) or "none"
+            print(f"  {name}, per call on the host: control flow run there: {conds}; {c['syncs']:g} device-to-host "
+                  f"syncs; {c['graph_launches']:g} CUDA-graph launches, {c['graph_launch_ms']:.3f} ms "
+                  f"(updates {c['graph_update_ms']:.3f} ms)")
     if FLAGS.trace_dir:
         print(f"  trace: {FLAGS.trace_dir} (tensorboard --logdir {FLAGS.trace_dir})")
     if FLAGS.out:
@@ -257,7 +267,7 @@ def main(argv):
                                                  "per_action": per_action, "breakdown_ms": breakdown,
                                                  "speedup_vs_ar": speedup,
                                                  "control_steps_per_s": loop, "kernels": kernels,
-                                                 "device_gaps": gaps})
+                                                 "device_gaps": gaps, "host_control": control})
 
 
 if __name__ == "__main__":

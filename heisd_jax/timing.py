@@ -21,6 +21,7 @@ import dataclasses
 import gzip
 import json
 import functools
+import re
 import time
 from pathlib import Path
 from typing import Callable, Mapping
@@ -204,6 +205,37 @@ def device_gaps(path: str | Path, min_ms: float = 0.5, top: int = 10) -> dict[st
                          "host": inner["name"] if inner else None, "host_ms": inner["dur"] / 1e3 if inner else None})
         out[line] = rows
     return out
+
+
+_HOST_LOOP = re.compile(r"^(cond|conditional|while)(\.\d+)?$")  # XLA's control-flow thunks, named as in the HLO
+
+
+def host_control(path: str | Path, calls: int) -> dict:
+    """What a traced program's host did per call to drive the device (XLA's GPU runtime): the
+    conditionals and while loops it ran itself ("conditionals": {name: runs per call}; one that
+    a CUDA graph holds runs on the device and is not here), the device-to-host copies among
+    them ("syncs": each is a predicate or trip count the host waits for, and the device drains
+    for), and the CUDA-graph launches ("graph_launches" per call, "graph_launch_ms" of host time
+    per call) and updates ("graph_update_ms"). A graph launch costs host time roughly in
+    proportion to its nodes, and the device idles through it when nothing is queued."""
+    runs, n, ms = collections.Counter(), collections.Counter(), collections.Counter()
+    for line, evs in _timelines(path).items():
+        if _is_device(line):
+            continue
+        for e in evs:
+            name = e["name"]
+            if _HOST_LOOP.match(name):
+                runs[name] += 1
+            elif name == "MemcpyD2H":
+                n["syncs"] += 1
+            elif name.startswith("cuGraphLaunch"):
+                n["graph_launches"] += 1
+                ms["graph_launch_ms"] += e["dur"] / 1e3
+            elif name == "command_buffer::update":
+                ms["graph_update_ms"] += e["dur"] / 1e3
+    return {"conditionals": {k: v / calls for k, v in sorted(runs.items())},
+            "syncs": n["syncs"] / calls, "graph_launches": n["graph_launches"] / calls,
+            "graph_launch_ms": ms["graph_launch_ms"] / calls, "graph_update_ms": ms["graph_update_ms"] / calls}
 
 
 def split_text(total: float, parts: Mapping[str, float], notes: Mapping[str, str] | None = None,

@@ -4,7 +4,9 @@ A decode step that runs its draft rounds in a `lax.while_loop` and picks its pat
 `lax.cond` returns to the host at every loop test and every branch on a GPU: the predicate is
 copied back, and the host launches the next piece. XLA can record loops and conditionals
 into the GPU's command buffers (CUDA graphs with conditional nodes) instead, so the whole
-step runs as device-side graph nodes (what that saves a host loop: docs/scale.md). Set
+step runs as device-side graph nodes (what that saves a host loop: docs/scale.md) -- where
+every operation inside them can be recorded: a loop or conditional holding one that cannot (a
+cuDNN convolution, in the XLA of jax 0.10-0.11; `vla.Patchify`) stays on the host. Set
 process-wide (`XLA_FLAGS=--xla_gpu_enable_command_buffer=+WHILE,+CONDITIONAL`) it also applies
 to the simulator's physics program, which it slows (docs/evaluator.md). `DEVICE_LOOPS` sets it for one program:
 `jax.jit(fn, compiler_options=DEVICE_LOOPS)`.

@@ -39,6 +39,8 @@ def test_profiler_times_every_part_and_writes_a_trace(tmp_path):
         lines = r["kernels"][part]
         assert lines and all(s["total_ms"] > 0 and s["top"] for s in lines.values()), part
         assert set(r["device_gaps"][part]) == set(lines), part  # the idle stretches of the same timelines
+        assert set(r["host_control"][part]) == {"conditionals", "syncs", "graph_launches", "graph_launch_ms",
+                                                "graph_update_ms"}, part
         with gzip.open(tmp_path / "hlo" / f"{part}.hlo.txt.gz", "rt") as f:  # where the kernels' names are
             assert "HloModule" in f.read(), part
     assert "act vs AR at batch 2" in out.stdout

@@ -86,6 +86,27 @@ def test_device_gaps_name_what_the_device_waited_for(tmp_path):
     assert summary["top"] == [("conv", pytest.approx(1.0))] and summary["launches"] == {"conv": 1.0}
 
 
+def test_host_control_counts_what_the_host_ran_of_a_call(tmp_path):
+    """A synthetic trace of two calls: each runs a conditional on the host (its predicate read
+    back), a while loop once, and two graph launches; the device's own copy is not the host's."""
+    meta = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+            {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "Stream #7"}},
+            {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
+            {"ph": "M", "name": "thread_name", "pid": 2, "tid": 3, "args": {"name": "python"}}]
+    x = lambda pid, tid, name, ts, dur: {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
+    call = [x(2, 3, "cond.45", 0, 900), x(2, 3, "MemcpyD2H", 10, 20), x(2, 3, "cuGraphLaunch (CudaGraph:4)", 50, 800),
+            x(2, 3, "command_buffer::update", 40, 100), x(2, 3, "while.3", 900, 100),
+            x(2, 3, "cuGraphLaunch (CudaGraph:5)", 920, 200), x(2, 3, "conditional_fusion", 1100, 5),
+            x(1, 7, "MemcpyD2H", 30, 5), x(1, 7, "cond.45", 60, 5)]
+    events = meta + call + [dict(e, ts=e["ts"] + 5000) for e in call]
+    path = tmp_path / "t.json.gz"
+    with gzip.open(path, "wt") as f:
+        json.dump({"traceEvents": events}, f)
+    got = timing.host_control(path, calls=2)
+    assert got == {"conditionals": {"cond.45": 1.0, "while.3": 1.0}, "syncs": 1.0, "graph_launches": 2.0,
+                   "graph_launch_ms": pytest.approx(1.0), "graph_update_ms": pytest.approx(0.1)}
+
+
 def test_split_text_is_the_time_line_in_whole_seconds_parts_in_the_order_given():
     line = timing.split_text(12.4, {"run": 8.8, "compile": 3.6}, notes={"compile": "2 programs"})
     assert line == "time: 12s = run 9s + compile 4s (2 programs)"
