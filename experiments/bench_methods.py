@@ -81,6 +81,9 @@ flags.DEFINE_enum("matmul_precision", None, list(vla.MATMUL_PRECISIONS), "Every 
 flags.DEFINE_enum("attention", None, [vla.AUTO_ATTENTION, *vla.ATTENTIONS], "Every timed method (and the ceiling) "
                   "with this prefill attention, unless its --methods settings name one (default: each method's, "
                   "auto: cuDNN's for an expanded target on a GPU in 16 bits).")
+flags.DEFINE_enum("patchify", None, list(vla.PATCHIFIES), "Every timed method (and the ceiling) with the vision "
+                  "tower's patchify as a convolution or one matrix product (vla.Patchify), unless its --methods "
+                  "settings name one (default: conv).")
 flags.DEFINE_bool("ceiling", True, "Also time the prefill alone (the AR / prefill ceiling).")
 flags.DEFINE_bool("device_loops", False, "Compile every replay (AR's, the ceiling's and each method's) with "
                   "heisd_jax.xla_options.DEVICE_LOOPS: on a GPU the replay's step loop, the draft rounds and the "
@@ -92,8 +95,9 @@ flags.DEFINE_list("replot", [], "Instead of measuring: plot the rows of these --
 
 
 def common_settings() -> dict:
-    """The settings --target_scale, --dtype, --matmul_precision and --attention give every timed method."""
-    return {k: FLAGS[k].value for k in ("target_scale", "dtype", "matmul_precision", "attention")
+    """The settings --target_scale, --dtype, --matmul_precision, --attention and --patchify give every
+    timed method."""
+    return {k: FLAGS[k].value for k in ("target_scale", "dtype", "matmul_precision", "attention", "patchify")
             if FLAGS[k].value is not None}
 
 
