@@ -67,13 +67,18 @@ def synthetic_inputs(cfg: vla.VLAConfig, batch: int, n_candidates: int, seed: in
     return obs, cand
 
 
+def _non_default(cfg: vla.VLAConfig, fields: tuple[str, ...]) -> dict:
+    """`fields` of cfg that differ from VLAConfig's defaults: numerics added to the key after tables
+    were cached, which leave the keys of tables measured at their defaults unchanged."""
+    return {k: getattr(cfg, k) for k in fields if getattr(cfg, k) != getattr(vla.VLAConfig, k)}
+
+
 def table_key(cfg: vla.VLAConfig, hcfg: hybrid.HybridConfig, batch: int) -> dict:
     dev = jax.devices()[0]
     model = cfg.architecture()
     return {"format": FORMAT, "device": dev.device_kind, "platform": dev.platform, "jax": jax.__version__,
             "model": model, "dtype": cfg.dtype, "matmul_precision": cfg.matmul_precision, "unroll": cfg.unroll,
-            **({"attention": cfg.attention} if cfg.attention != vla.VLAConfig.attention else {}),
-            **({"patchify": cfg.patchify} if cfg.patchify != vla.VLAConfig.patchify else {}), "batch": int(batch),
+            **_non_default(cfg, ("attention", "patchify")), "batch": int(batch),
             "n_candidates": hcfg.n_candidates,
             "recent_candidates": hcfg.recent_candidates, "verify": hcfg.verify,
             "options": [o.name for o in budget.options(hcfg.budget, hcfg.mode)]}

@@ -13,6 +13,18 @@ import pytest
 from heisd_jax import timing
 
 
+# A synthetic trace's timelines: a GPU stream (pid 1, tid 7) and a host thread (pid 2, tid 3).
+_META = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
+         {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "Stream #7"}},
+         {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
+         {"ph": "M", "name": "thread_name", "pid": 2, "tid": 3, "args": {"name": "python"}}]
+
+
+def _x(pid, tid, name, ts, dur):
+    """A complete event of `dur` us at `ts` us."""
+    return {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}
+
+
 def test_kernel_summary_of_a_traced_call(tmp_path):
     f = jax.jit(lambda x: jnp.tanh(x @ x.T).sum(0))
     x = jnp.ones((384, 384), jnp.float32)
@@ -60,13 +72,8 @@ def test_in_graph_returns_the_pieces_output_from_its_timed_loop():
 def test_device_gaps_name_what_the_device_waited_for(tmp_path):
     """A synthetic trace: kernels at 0-1 ms and 6-7 ms and 7.2-8 ms on a GPU stream, a host
     call spanning all of it and, inside, a 4.9 ms graph launch over the first idle stretch."""
-    meta = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
-            {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "Stream #7"}},
-            {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
-            {"ph": "M", "name": "thread_name", "pid": 2, "tid": 3, "args": {"name": "python"}}]
-    x = lambda pid, tid, name, ts, dur: {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
-    events = meta + [x(1, 7, "conv", 0, 1000), x(1, 7, "gemm", 6000, 1000), x(1, 7, "tail", 7200, 800),
-                     x(2, 3, "jit_act", 0, 9000), x(2, 3, "cuGraphLaunch (CudaGraph:17)", 1100, 4900)]
+    events = _META + [_x(1, 7, "conv", 0, 1000), _x(1, 7, "gemm", 6000, 1000), _x(1, 7, "tail", 7200, 800),
+                     _x(2, 3, "jit_act", 0, 9000), _x(2, 3, "cuGraphLaunch (CudaGraph:17)", 1100, 4900)]
     path = tmp_path / "t.json.gz"
     with gzip.open(path, "wt") as f:
         json.dump({"traceEvents": events}, f)
@@ -89,16 +96,11 @@ def test_device_gaps_name_what_the_device_waited_for(tmp_path):
 def test_host_control_counts_what_the_host_ran_of_a_call(tmp_path):
     """A synthetic trace of two calls: each runs a conditional on the host (its predicate read
     back), a while loop once, and two graph launches; the device's own copy is not the host's."""
-    meta = [{"ph": "M", "name": "process_name", "pid": 1, "args": {"name": "/device:GPU:0"}},
-            {"ph": "M", "name": "thread_name", "pid": 1, "tid": 7, "args": {"name": "Stream #7"}},
-            {"ph": "M", "name": "process_name", "pid": 2, "args": {"name": "/host:CPU"}},
-            {"ph": "M", "name": "thread_name", "pid": 2, "tid": 3, "args": {"name": "python"}}]
-    x = lambda pid, tid, name, ts, dur: {"ph": "X", "pid": pid, "tid": tid, "name": name, "ts": ts, "dur": dur}  # noqa: E731
-    call = [x(2, 3, "cond.45", 0, 900), x(2, 3, "MemcpyD2H", 10, 20), x(2, 3, "cuGraphLaunch (CudaGraph:4)", 50, 800),
-            x(2, 3, "command_buffer::update", 40, 100), x(2, 3, "while.3", 900, 100),
-            x(2, 3, "cuGraphLaunch (CudaGraph:5)", 920, 200), x(2, 3, "conditional_fusion", 1100, 5),
-            x(1, 7, "MemcpyD2H", 30, 5), x(1, 7, "cond.45", 60, 5)]
-    events = meta + call + [dict(e, ts=e["ts"] + 5000) for e in call]
+    call = [_x(2, 3, "cond.45", 0, 900), _x(2, 3, "MemcpyD2H", 10, 20), _x(2, 3, "cuGraphLaunch (CudaGraph:4)", 50, 800),
+            _x(2, 3, "command_buffer::update", 40, 100), _x(2, 3, "while.3", 900, 100),
+            _x(2, 3, "cuGraphLaunch (CudaGraph:5)", 920, 200), _x(2, 3, "conditional_fusion", 1100, 5),
+            _x(1, 7, "MemcpyD2H", 30, 5), _x(1, 7, "cond.45", 60, 5)]
+    events = _META + call + [dict(e, ts=e["ts"] + 5000) for e in call]
     path = tmp_path / "t.json.gz"
     with gzip.open(path, "wt") as f:
         json.dump({"traceEvents": events}, f)
