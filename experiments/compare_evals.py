@@ -24,6 +24,8 @@ from experiments import cli
 
 FLAGS = flags.FLAGS
 flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the baseline, in points, on any suite.")
+flags.DEFINE_bool("common_tasks", False, "Compare on the tasks every evaluation holds (the others are named and left "
+                  "out), e.g. a partial run against a whole baseline. Off: evaluations of other tasks are refused.")
 
 
 def label(result: dict) -> str:
@@ -51,11 +53,63 @@ def _physics_text(recorded: dict | None) -> str:
     return ",".join(f"{k}={v}" for k, v in recorded.items() if getattr(defaults, k, None) != v)
 
 
+def join(parts: list[dict]) -> dict:
+    """One evaluation from evaluations of disjoint tasks with the same settings (the settings'
+    task lists concatenated; per-task results and episodes side by side; the commit kept where
+    all agree). ValueError naming the settings that differ or the tasks that repeat."""
+    if len(parts) == 1:
+        return parts[0]
+
+    def same(settings: dict) -> dict:  # files named by their contents' digests, not the paths they were read from
+        return {k: v for k, v in settings.items() if k != "tasks" and k not in settings.get("contents", {})}
+    first = same(parts[0].get("settings", {}))
+    for i, p in enumerate(parts[1:], 1):
+        s = same(p.get("settings", {}))
+        if s != first:
+            keys = sorted(k for k in set(s) | set(first) if s.get(k) != first.get(k))
+            raise ValueError(f"cannot join evaluations of other settings (part {i + 1} differs in {', '.join(keys)})")
+    seen: dict[str, int] = {}
+    for i, p in enumerate(parts):
+        for t in p["episodes"]:
+            if t in seen:
+                raise ValueError(f"cannot join evaluations that both hold task {t!r} (parts {seen[t] + 1} and {i + 1})")
+            seen[t] = i
+    commits = {p.get("commit") for p in parts}
+    tasks = [t for p in parts for t in p.get("settings", {}).get("tasks") or p["episodes"]]
+    return dict(settings=dict(parts[0]["settings"], tasks=tasks), episodes={t: e for p in parts for t, e in p["episodes"].items()},
+                summary=dict(tasks={t: v for p in parts for t, v in p["summary"]["tasks"].items()}),
+                commit=commits.pop() if len(commits) == 1 else None)
+
+
+def common(results: list[dict]) -> tuple[list[dict], list[str]]:
+    """The results restricted to the tasks all of them hold (in the first one's order), and
+    the tasks left out."""
+    keep = set.intersection(*(set(r["episodes"]) for r in results))
+    order = results[0].get("settings", {}).get("tasks") or list(results[0]["episodes"])
+    out = [dict(r, settings=dict(r.get("settings", {}), tasks=[t for t in order if t in keep]),
+                episodes={t: e for t, e in r["episodes"].items() if t in keep},
+                summary=dict(r["summary"], tasks={t: v for t, v in r["summary"]["tasks"].items() if t in keep}))
+           for r in results]
+    return out, sorted(set().union(*(set(r["episodes"]) for r in results)) - keep)
+
+
+def load(arg: str) -> dict:
+    """An evaluate result, or several joined with '+' (`join`)."""
+    return join([cli.load_eval_results(p) for p in arg.split("+")])
+
+
 def compare(base: dict, other: dict, tolerance: float) -> dict:
     """Per-suite and overall comparison of `other` with `base` (both evaluate results)."""
     eb, eo = base["episodes"], other["episodes"]
     if sorted(eb) != sorted(eo) or any(len(eb[t]) != len(eo[t]) for t in eb):
-        raise ValueError("the evaluations hold different tasks or episode counts: they are not paired")
+        only_b, only_o = sorted(set(eb) - set(eo)), sorted(set(eo) - set(eb))
+        counts = sorted(t for t in set(eb) & set(eo) if len(eb[t]) != len(eo[t]))
+        raise ValueError("the evaluations hold different tasks or episode counts: they are not paired"
+                         + "".join(f"; {what}: {', '.join(ts[:4])}{' ...' if len(ts) > 4 else ''} ({len(ts)})"
+                                   for what, ts in (("tasks only in the baseline", only_b),
+                                                    ("tasks only in the other", only_o),
+                                                    ("other episode counts", counts)) if ts)
+                         + " (evaluations of disjoint tasks join with '+')")
     suite_of = {t: v["suite"] for t, v in base["summary"]["tasks"].items()}
     suites: dict[str, dict] = {}
     for task in base.get("settings", {}).get("tasks") or eb:  # the evaluation's order of tasks (and suites)
@@ -120,11 +174,18 @@ def table(base: dict, rows: list[dict], tolerance: float) -> str:
 
 def main(argv):
     if len(argv) < 3:
-        raise app.UsageError("usage: python -m experiments.compare_evals BASELINE.json OTHER.json [OTHER.json ...]")
+        raise app.UsageError("usage: python -m experiments.compare_evals BASELINE.json OTHER.json [OTHER.json ...] "
+                             "(A.json+B.json: evaluations of disjoint tasks, joined)")
     if FLAGS.tolerance < 0:
         raise app.UsageError(f"--tolerance must be >= 0 points, got {FLAGS.tolerance}")
     try:
-        base, others = cli.load_eval_results(argv[1]), [cli.load_eval_results(p) for p in argv[2:]]
+        base, others = load(argv[1]), [load(p) for p in argv[2:]]
+        if FLAGS.common_tasks:
+            (base, *others), left_out = common([base, *others])
+            if not base["episodes"]:
+                raise ValueError("the evaluations hold no task in common")
+            if left_out:
+                print(f"left out ({len(left_out)} tasks not in every evaluation): {', '.join(left_out)}")
         rows = [compare(base, o, FLAGS.tolerance) for o in others]
     except ValueError as e:
         raise app.UsageError(str(e)) from e

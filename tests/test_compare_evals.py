@@ -75,3 +75,45 @@ def test_a_gzipped_result_loads_as_the_plain_one(tmp_path):
     plain.write_text(json.dumps(BASE))
     packed.write_bytes(gzip.compress(plain.read_bytes()))
     assert cli.load_eval_results(str(packed)) == cli.load_eval_results(str(plain)) == BASE
+
+
+def test_evaluations_of_disjoint_tasks_join_into_the_whole(tmp_path):
+    """One run per suite, joined with '+', compares as the one run over every task."""
+    other = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]},
+                   SUITE_OF)
+    parts = [result("heisd", {t: [e["success"] for e in other["episodes"][t]] for t in ts}, SUITE_OF)
+             for ts in (["a", "b"], ["c"])]
+    paths = []
+    for i, p in enumerate(parts):
+        paths.append(tmp_path / f"part{i}.json")
+        paths[-1].write_text(json.dumps(dict(p, commit="abcdef0123")))
+    joined = compare_evals.load("+".join(map(str, paths)))
+    assert joined["settings"]["tasks"] == ["a", "b", "c"] and joined["commit"] == "abcdef0123"
+    whole, split = compare_evals.compare(BASE, other, 2.0), compare_evals.compare(BASE, joined, 2.0)
+    assert {k: v for k, v in split.items() if k != "label"} == {k: v for k, v in whole.items() if k != "label"}
+    with pytest.raises(ValueError, match=r"tasks only in the baseline: c \(1\).*join with '\+'"):
+        compare_evals.compare(BASE, parts[0], 2.0)
+
+
+def test_a_join_refuses_other_settings_and_repeated_tasks():
+    a = result("heisd", {"a": [True]}, SUITE_OF)
+    a["settings"].update(checkpoint="/tmp/one/vla", contents={"checkpoint": "deddfac7"})
+    b = result("heisd", {"b": [True]}, SUITE_OF)  # the same file read from another path: joins
+    b["settings"].update(checkpoint="/root/two/vla", contents={"checkpoint": "deddfac7"})
+    assert compare_evals.join([a, b])["settings"]["tasks"] == ["a", "b"]
+    b["settings"]["contents"] = {"checkpoint": "0123abcd"}
+    with pytest.raises(ValueError, match="part 2 differs in contents"):
+        compare_evals.join([a, b])
+    with pytest.raises(ValueError, match="part 2 differs in .*method"):
+        compare_evals.join([a, result("ar", {"b": [True]}, SUITE_OF)])
+    with pytest.raises(ValueError, match="both hold task 'a' \\(parts 1 and 2\\)"):
+        compare_evals.join([a, result("heisd", {"a": [False], "b": [True]}, SUITE_OF)])
+
+
+def test_common_tasks_restrict_every_evaluation_to_the_shared_ones():
+    part = result("heisd", {"a": [True, False, True, True], "c": [False] * 4}, SUITE_OF)
+    (base, other), left_out = compare_evals.common([BASE, part])
+    assert left_out == ["b"] and list(base["episodes"]) == ["a", "c"] == base["settings"]["tasks"]
+    r = compare_evals.compare(base, other, 2.0)
+    assert (r["suites"]["spatial"]["base_only"], r["suites"]["spatial"]["episodes"]) == (1, 4)
+    assert r["suites"]["long"]["diff_points"] == -75.0
