@@ -107,7 +107,7 @@ def test_a_join_refuses_other_settings_and_repeated_tasks():
     with pytest.raises(ValueError, match="part 2 differs in .*method"):
         compare_evals.join([a, result("ar", {"b": [True]}, SUITE_OF)])
     with pytest.raises(ValueError, match="both hold task 'a' \\(parts 1 and 2\\)"):
-        compare_evals.join([a, result("heisd", {"a": [False], "b": [True]}, SUITE_OF)])
+        compare_evals.join([a, dict(result("heisd", {"a": [False]}, SUITE_OF), settings=a["settings"])])
 
 
 def test_common_tasks_restrict_every_evaluation_to_the_shared_ones():
