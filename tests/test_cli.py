@@ -48,6 +48,8 @@ CASES = [
     ("studies.expert_gain", ["--gains=1.2,0"], "--gains must be > 0"),
     ("studies.budget_replay", ["--tables=experiments/results/costs/cost_table_bf16_target_b16_h200.json"],
      "prices batch 16: the replay is at batch 1"),
+    ("studies.budget_replay", ["--settings=target_scale=llama2-7b,top_k=3"],
+     "--settings: ['top_k'] are set by each replayed option"),
     ("profile", ["--compiler_options=xla_bogus=1"], "No such compile option: 'xla_bogus'"),
     ("profile", ["--compiler_options=xla_gpu_deterministic_ops"], "is not key=value"),
     ("profile", ["--parts=prefill,verify"], "--parts: unknown ['verify']; valid parts: ['prefill', 'prefill+cand'"),

@@ -54,21 +54,43 @@ flags.DEFINE_integer("jitter", 0, "Per automatic row, also replay the chooser th
                      "measured: how much the choice, and its figure, move with the table's error.")
 flags.DEFINE_float("jitter_sd", 0.01, "Relative standard deviation of --jitter's perturbation.")
 flags.DEFINE_string("rounds_from", "", "Instead of replaying: the per-step rounds of an earlier --out file.")
+flags.DEFINE_string("settings", "", "heisd settings every replayed option runs with, key=value,... (e.g. "
+                    "target_scale=llama2-7b,dtype=bfloat16: the rounds of the 7B expansion on this device); the "
+                    "recording stays the shipped target's AR, as in bench_methods. Not the options' own settings "
+                    "(budget, continuation, top_k, depth, total_tokens).")
 cli.define_paths("checkpoint", "drafter", "datastore")
 
 
-def per_step_rounds(env, states, running, trees):
-    """{'skipped', 'drafter', 'ar+retrieval', tree name...}: per replayed step at batch 1, and
-    the share of steps whose action equals continuation=ar's under every tree."""
-    t_idx, e_idx = rollout.replay_lanes(running, min(FLAGS.record_envs, FLAGS.lane_envs), 1)
-    sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
+def option_settings(trees) -> dict[str, dict]:
+    """Each replayed option's own heisd settings: continuation=ar after the candidates, then each tree."""
     runs = {"ar+retrieval": {"budget": "fixed", "continuation": "ar"}}
     runs.update({"x".join(map(str, t)): {"budget": "fixed", "top_k": t[0], "depth": t[1], "total_tokens": t[2]}
                  for t in trees})
+    return runs
+
+
+def replay_settings(text: str, trees) -> dict:
+    """--settings, checked as heisd's with every option's own (ValueError naming the problem)."""
+    given = dict(kv.split("=", 1) for kv in text.split(",") if kv)
+    own = sorted(set(given) & {k for extra in option_settings(trees).values() for k in extra})
+    if own:
+        raise ValueError(f"--settings: {own} are set by each replayed option; give the others "
+                         "(target_scale, dtype, patchify, acceptance, ...)")
+    for extra in option_settings(trees).values():
+        methods.check_settings("heisd", {**given, **{k: str(v) for k, v in extra.items()}})
+    return methods.check_settings("heisd", given)
+
+
+def per_step_rounds(env, states, running, trees, settings: dict):
+    """{'skipped', 'drafter', 'ar+retrieval', tree name...}: per replayed step at batch 1 (each
+    option with `settings` besides its own), and the share of steps whose action equals
+    continuation=ar's under every tree."""
+    t_idx, e_idx = rollout.replay_lanes(running, min(FLAGS.record_envs, FLAGS.lane_envs), 1)
+    sub = jax.tree.map(lambda x: x[t_idx, e_idx], states)
     out, actions = {"env": e_idx[:, 0]}, {}
-    for name, settings in runs.items():
+    for name, extra in option_settings(trees).items():
         policy = methods.make_policy("heisd", env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
-                                     datastore=FLAGS.datastore, batch_size=1, **settings)
+                                     datastore=FLAGS.datastore, batch_size=1, **settings, **extra)
         acts, stats = jax.device_get(replay.replay_fn(policy)(policy.params, sub))
         actions[name] = np.asarray(acts)[:, 0]
         out[name] = np.asarray(stats["rounds"])[:, 0]
@@ -122,6 +144,9 @@ def main(argv):
             raise ValueError(f"--horizons must be >= 0, got {horizons}")
         if FLAGS.jitter < 0 or not 0 < FLAGS.jitter_sd < 0.5:
             raise ValueError(f"need --jitter >= 0 and 0 < --jitter_sd < 0.5, got {FLAGS.jitter}, {FLAGS.jitter_sd}")
+        settings = replay_settings(FLAGS.settings, trees)
+        if settings and FLAGS.rounds_from:
+            raise ValueError("--settings apply to a replay; --rounds_from reads one (its settings are in its file)")
     except ValueError as e:
         raise app.UsageError(str(e)) from e
     if not FLAGS.tables:
@@ -142,17 +167,17 @@ def main(argv):
         missing = {"x".join(map(str, t)) for t in trees} - set(rounds)
         if missing:
             raise app.UsageError(f"--rounds_from={FLAGS.rounds_from} has no rounds of {sorted(missing)}")
-        same = before["same_action_share"]
+        same, settings = before["same_action_share"], before.get("settings", {})
     else:
         checkpoint.load_policy(FLAGS.checkpoint, text_vocab=language.VOCAB)  # fails early on a bad checkpoint
         env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
         states, _, done = replay.record(env, methods.make_policy("ar", env, checkpoint=FLAGS.checkpoint),
                                         FLAGS.record_envs, FLAGS.steps)
-        rounds, same = per_step_rounds(env, states, ~np.asarray(done), trees)
+        rounds, same = per_step_rounds(env, states, ~np.asarray(done), trees, settings)
     n = len(rounds["skipped"])
     print(f"{n} steps, skipped {rounds['skipped'].mean():.2f}, drafter mode {rounds['drafter'].mean():.2f}; "
           f"actions equal to continuation=ar's under every option: {same:.3f}")
-    report = {**results_io.provenance(cli.command_line()), "steps": n, "same_action_share": same,
+    report = {**results_io.provenance(cli.command_line()), "steps": n, "same_action_share": same, "settings": settings,
               "skipped": float(rounds["skipped"].mean()), "drafter_mode": float(rounds["drafter"].mean()),
               "mean_rounds": {k: float(np.mean(v)) for k, v in rounds.items() if k not in ("skipped", "drafter", "env")},
               "tables": {}, "per_step": {k: np.asarray(v).tolist() for k, v in rounds.items()}}
