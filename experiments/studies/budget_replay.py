@@ -12,6 +12,11 @@ against each fixed option and against an oracle that knows every step's rounds.
   python -m experiments.studies.budget_replay --suites=all --steps=30 --lane_envs=8 \\
       --tables=experiments/results/costs/7b_bf16_h200/costs_4d1af0212330f457.json --out=R.json
 
+On a GPU, `--settings=target_scale=llama2-7b,dtype=bfloat16` replays the options with the 7B
+expansion in bf16, so the rounds are those a 7B benchmark there needs (bf16 picks other tokens
+than the CPU's float32 on many states), on states recorded as bench_methods records them (the
+shipped target's AR).
+
 Per step of the batch-1 replay it records: skipped (no target pass), the mode (retrieval or
 drafter) and the rounds of `ar+retrieval` (`continuation=ar`: single-token passes) and of each
 tree (after the candidates on retrieval steps, from the prefill on drafter steps). A tree
