@@ -393,21 +393,36 @@ def queue_states(carry: tuple) -> EnvState:
     return carry[4]
 
 
-def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, carry: tuple | None = None
-                ) -> tuple:
+def drive_queue(loop: QueueLoop, params: Any, starts: QueueStarts, n_valid: jnp.ndarray, carry: tuple | None = None,
+                each_round: Callable[[tuple], None] | None = None) -> tuple:
     """Runs `loop` (its functions, typically compiled) from the host to the end of the queue
     (or where its tail starts); returns the final carry. Each round's `alive` is read after
     the next round is queued, so the device is not left waiting for the host. `carry`: a
-    tail's loop goes on from the head's final carry."""
+    tail's loop goes on from the head's final carry. `each_round(carry)`: called on the host
+    with every round's carry as it is queued (reading it waits for the device: a caller that
+    saves progress reads it now and then, `ended_episodes`)."""
     c, x, go = loop.first(params, starts, n_valid) if carry is None else loop.first(params, starts, n_valid, carry)
     alive = None
     while True:
         for stage in loop.stages:
             x = stage(queue_states(c), x)
         c, x, go, now = loop.turn(params, c, x, go, starts, n_valid)
+        if each_round is not None:
+            each_round(c)
         if alive is not None and not bool(alive):
             return c
         alive = now
+
+
+def ended_episodes(next_ep, slot_ep, n_queue: int) -> np.ndarray:
+    """[n_queue] bool on the host, from a queue carry's next_ep and slot_ep (`carry[2:4]`):
+    the episodes that have ended, taken from the queue and no longer in a slot. Their rows of
+    the carry's results (`carry[-1]`) are final: a slot writes its episode's row once, when
+    the episode ends."""
+    slot_ep = np.asarray(slot_ep)
+    ended = np.arange(n_queue) < int(next_ep)
+    ended[slot_ep[slot_ep < n_queue]] = False
+    return ended
 
 
 def _check_tail(num_slots: int, tail_slots: int) -> None:

@@ -21,6 +21,7 @@ import numpy as np
 from absl import app, flags
 
 from experiments import cli
+from heisd_jax import results_io
 
 FLAGS = flags.FLAGS
 flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the baseline, in points, on any suite.")
@@ -61,7 +62,7 @@ def join(parts: list[dict]) -> dict:
         return parts[0]
 
     def same(settings: dict) -> dict:  # files named by their contents' digests, not the paths they were read from
-        return {k: v for k, v in settings.items() if k != "tasks" and k not in settings.get("contents", {})}
+        return {k: v for k, v in results_io.run_identity(settings).items() if k != "tasks"}
     first = same(parts[0].get("settings", {}))
     for i, p in enumerate(parts[1:], 1):
         s = same(p.get("settings", {}))

@@ -3,7 +3,8 @@
   python -m experiments.evaluate --method=ar --suites=all --episodes=50 --out=results/eval_ar.json
 
 Writes per-task and per-suite success rates and per-action decoding statistics (target
-passes per action, wall-clock per batched control step) to --out (JSON) after every batch;
+passes per action, wall-clock per batched control step) to --out (JSON) after every batch,
+and every --save_every_s seconds within a refilled queue (the episodes that have ended);
 rerunning the same command resumes where it stopped. A results file written with other
 settings is refused, never overwritten (use another --out).
 """
@@ -40,6 +41,9 @@ flags.DEFINE_bool("refill", True, "An env whose episode ends takes the next pend
                   "one call, results written at its end. --norefill: batches of --num_envs episodes, each waiting "
                   "for its slowest, results written after each batch.")
 cli.define_tail_flag()
+flags.DEFINE_float("save_every_s", ev.EvalConfig.save_every_s, "With refill: every this many seconds, the episodes "
+                   "that have ended are written to --out, so an interrupted run (a lease that ends, say) resumes "
+                   "after them; 0: results written only at the end of the queue.")
 cli.define_store_flag()
 flags.DEFINE_bool("compile_only", False, "Compile the rollout this command would run (filling the compilation cache "
                   "and the executable store, e.g. before a sweep), print where its compile time went, run nothing and "
@@ -62,7 +66,8 @@ def main(argv):
     try:
         task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
         cfg = ev.EvalConfig(episodes_per_task=FLAGS.episodes, num_envs=FLAGS.num_envs or ev.default_num_envs(),
-                            refill=FLAGS.refill, tail_envs=FLAGS.tail_envs, deterministic=FLAGS.deterministic)
+                            refill=FLAGS.refill, tail_envs=FLAGS.tail_envs, deterministic=FLAGS.deterministic,
+                            save_every_s=FLAGS.save_every_s)
         for n in filter(None, (cfg.num_envs, cfg.tail_envs)):  # the tail's batch too, if any
             sharding.check_batch(n, sharding.env_mesh())
     except ValueError as e:
@@ -148,7 +153,14 @@ def main(argv):
               f"control step, {t['env_steps'] / t['batch_seconds']:.0f} env steps/s), "
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
-    results = ev.evaluate(env, policy, cfg, done, on_batch, store=store)
+    def on_progress(results):
+        summary = write(results)
+        ended = sum(s["episodes"] for s in summary["suites"].values())
+        print(f"  {ended}/{n_total} episodes ended (saved), success so far "
+              f"{sum(s['successes'] for s in summary['suites'].values()) / max(ended, 1):.3f}, "
+              f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
+
+    results = ev.evaluate(env, policy, cfg, done, on_batch, store=store, on_progress=on_progress)
     summary = write(results)
     print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
           f"{'passes/ep':>11}")

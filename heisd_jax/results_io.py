@@ -55,9 +55,18 @@ def provenance(command: str) -> dict:
             "date": time.strftime("%Y-%m-%d")}
 
 
+def run_identity(settings: dict) -> dict:
+    """What makes two evaluations' settings the same run: all of them but the paths of the
+    files that their `contents` names by digest (the same checkpoint read from another folder,
+    as a leased machine's job copies the tree, is the same run; another file at the same path
+    is not). A path whose file was missing (digest None) stays."""
+    digested = {k for k, v in settings.get("contents", {}).items() if v is not None}
+    return {k: v for k, v in settings.items() if k not in digested}
+
+
 def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
-    """Per-episode results of an earlier run with identical `settings`, or {} if none.
-    Raises ValueError if the file holds a run with other settings or is not ours."""
+    """Per-episode results of an earlier run of the same `settings` (`run_identity`), or {}
+    if none. Raises ValueError if the file holds a run with other settings or is not ours."""
     path = Path(path)
     if not path.exists():
         return {}
@@ -65,7 +74,8 @@ def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
         data = read_json(path)
     except ValueError as e:
         raise ValueError(f"{path} exists but is not a readable results file ({e}); choose another --out") from e
-    if not isinstance(data, dict) or data.get("settings") != settings:
+    if not isinstance(data, dict) or not isinstance(data.get("settings"), dict) or (
+            run_identity(data["settings"]) != run_identity(settings)):
         raise ValueError(
             f"{path} holds results of other settings ({data.get('settings') if isinstance(data, dict) else '?'}); "
             f"refusing to overwrite it: choose another --out"

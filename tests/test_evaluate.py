@@ -248,3 +248,32 @@ def test_a_deterministic_rollout_is_a_program_of_its_own_that_plays_the_same_epi
     plain, det = (ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=2, num_envs=2, deterministic=d),
                               rollouts=rollouts) for d in (False, True))
     assert plain == det and len(plain["left_block_plate"]) == 2 and len(rollouts) == 2
+
+
+class _LeaseEnded(Exception):
+    pass
+
+
+def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
+    """Within a refilled call, `on_progress` gets the episodes that have ended (none of them
+    before it ends); a run stopped after such a save (a lease that ends) and resumed from what
+    it saved gives the results of one uninterrupted run."""
+    env = TabletopEnv(tasks_lib.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    policy = methods.make_policy("expert", env)
+    cfg = ev.EvalConfig(episodes_per_task=3, num_envs=2, save_every_s=1e-9)  # a save every round
+    rollouts = {}
+    whole = ev.evaluate(env, policy, dataclasses.replace(cfg, save_every_s=0.0), rollouts=rollouts)
+    saves = []
+
+    def on_progress(results):
+        saves.append(json.loads(json.dumps(results)))  # a copy, as a results file holds it
+        raise _LeaseEnded
+
+    with pytest.raises(_LeaseEnded):
+        ev.evaluate(env, policy, cfg, rollouts=rollouts, on_progress=on_progress)
+    (saved,) = saves
+    ended = [r for r in saved["left_block_plate"] if r is not None]
+    assert 0 < len(ended) < 3 and all(r in whole["left_block_plate"] for r in ended)
+    assert ev.evaluate(env, policy, cfg, done=saved, rollouts=rollouts) == whole
+    with pytest.raises(ValueError, match="save_every_s must be >= 0"):
+        ev.EvalConfig(save_every_s=-1.0)

@@ -264,3 +264,33 @@ def test_a_host_driven_loop_stops_where_the_tail_starts(case):
     c = rollout.drive_queue(loop, None, starts, n, carry=head)
     assert int(c[0]) == int(steps)
     jax.tree.map(np.testing.assert_array_equal, out, c[-1])
+
+
+def test_episodes_ended_mid_queue_hold_their_final_results(case):
+    """Read every round as the evaluator reads it to save progress: an episode counted as
+    ended stays so, its results row is already the final one, and by the end every valid
+    episode has ended; through a tail's loop too."""
+    keys, task_ids, *_ = case
+    n = jnp.int32(N_EPISODES)
+    starts = jax.jit(lambda k, t: rollout.queue_starts(_Env(), k, t))(keys, task_ids)
+    seen = []
+
+    def each_round(c):
+        next_ep, slot_ep, results = jax.device_get((c[2], c[3], c[-1]))
+        seen.append((rollout.ended_episodes(next_ep, slot_ep, N_QUEUE), results))
+
+    head_loop = rollout.queue_loop(_StagedEnv(), _sized_policy(), 4, 1000, tail_slots=2)
+    tail_loop = rollout.queue_loop(_StagedEnv(), _sized_policy(), 2, 1000)
+    jitted = [rollout.QueueLoop(jax.jit(lp.first), tuple(map(jax.jit, lp.stages)), jax.jit(lp.turn))
+              for lp in (head_loop, tail_loop)]
+    head = rollout.drive_queue(jitted[0], None, starts, n, each_round=each_round)
+    rounds_in_head = len(seen)
+    final = rollout.drive_queue(jitted[1], None, starts, n, carry=head, each_round=each_round)[-1]
+    assert 0 < rounds_in_head < len(seen)
+    masks = np.stack([m for m, _ in seen])
+    assert masks[0].sum() < N_EPISODES <= masks[-1].sum() and not masks[-1][N_EPISODES:].any()
+    assert np.all(masks[1:] >= masks[:-1])  # once ended, always ended
+    assert 0 < masks[rounds_in_head - 1].sum() < N_EPISODES  # the head saves some before the tail
+    for ended, results in seen:
+        jax.tree.map(lambda r, f: np.testing.assert_array_equal(np.asarray(r)[ended], np.asarray(f)[ended]),
+                     results, final)

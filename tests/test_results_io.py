@@ -43,6 +43,25 @@ def test_foreign_settings_are_refused_and_file_kept(tmp_path):
     assert path.read_text() == before
 
 
+def test_the_same_files_read_from_another_folder_resume_the_run(tmp_path):
+    """A run is its files' contents, not their paths: a job that copies the tree elsewhere
+    resumes it; another file at the same path, or a path with nothing there, does not."""
+    path = tmp_path / "r.json"
+
+    def settings(folder, digest):
+        return {"method": "ar", "checkpoint": f"/{folder}/checkpoints/vla", "contents": {"checkpoint": digest}}
+    episodes = {"a": [None]}
+    results_io.write_json_atomic(path, {"settings": settings("one", "deddfac7"), "episodes": episodes})
+    assert results_io.load_resumable(path, settings("two", "deddfac7")) == episodes
+    for other in (settings("one", "0123abcd"), settings("two", None)):
+        with pytest.raises(ValueError, match="other settings"):
+            results_io.load_resumable(path, other)
+    results_io.write_json_atomic(path, {"settings": settings("one", None), "episodes": episodes})
+    assert results_io.load_resumable(path, settings("one", None)) == episodes
+    with pytest.raises(ValueError, match="other settings"):
+        results_io.load_resumable(path, settings("two", None))
+
+
 def test_corrupt_file_is_refused(tmp_path):
     path = tmp_path / "r.json"
     path.write_text('{"settings": {"method": "exp')

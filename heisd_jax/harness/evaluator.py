@@ -1,8 +1,8 @@
 """The batched evaluator: runs a policy on the fixed evaluation initial states of a set of
 tasks, `num_envs` episodes at a time under one jitted rollout (the env batch sharded over
 all devices, see `sharding`), and aggregates success rates per task and suite. Progress is
-handed to a callback after every batch so callers can persist results as they complete and
-resume an interrupted run.
+handed to callbacks after every batch, and within a refilled queue every `save_every_s`
+seconds, so callers can persist results as episodes end and resume an interrupted run.
 """
 
 from __future__ import annotations
@@ -35,6 +35,10 @@ class EvalConfig:
     # Compile the rollout with deterministic GPU reductions (`xla_options.DETERMINISTIC`: the
     # physics' scatter-adds without atomics), so a rerun plays the same episodes; slower.
     deterministic: bool = False
+    # With refill: every this many seconds of a call, the episodes that have ended so far are
+    # handed to `evaluate`'s on_progress (to be saved), so an interrupted queue resumes after
+    # them instead of from its start; 0: only at the end of each call.
+    save_every_s: float = 60.0
 
     def __post_init__(self):
         if not 1 <= self.episodes_per_task <= tasks_lib.N_EVAL_INIT_STATES:
@@ -46,6 +50,8 @@ class EvalConfig:
                              f"got {self.tail_envs}")
         if self.tail_envs and not self.refill:
             raise ValueError("tail_envs needs refill (a static batch has no queue to drain)")
+        if self.save_every_s < 0:
+            raise ValueError(f"save_every_s must be >= 0 (0: save at the end of each call only), got {self.save_every_s}")
 
 
 NUM_ENVS_PER_GPU = 512  # env slots per GPU when none are asked for (`default_num_envs`)
@@ -284,14 +290,16 @@ class BatchRollout:
             self._tail_compiled, split = self._tail_future.result()
             self.compile_split.update(split)
 
-    def __call__(self, inputs: tuple) -> tuple[rollout.EpisodeResults, int]:
-        """Host copies of (per-episode results [queue], control steps the loop ran)."""
+    def __call__(self, inputs: tuple, each_round: Callable[[tuple], None] | None = None
+                 ) -> tuple[rollout.EpisodeResults, int]:
+        """Host copies of (per-episode results [queue], control steps the loop ran).
+        `each_round(carry)`: a queue's host-driven rounds, each (`rollout.drive_queue`)."""
         self.compile(inputs)
         if self._loop is None:
             return sharding.fetch(self._compiled(*inputs))
         params, n_valid = inputs[0], inputs[3]
         starts = self._starts_compiled(*self._starts_inputs(inputs))
-        carry = rollout.drive_queue(self._compiled, params, starts, n_valid)
+        carry = rollout.drive_queue(self._compiled, params, starts, n_valid, each_round=each_round)
         if self._tail is None:
             return sharding.fetch((carry[-1], carry[0]))
         jax.block_until_ready(carry)
@@ -302,14 +310,15 @@ class BatchRollout:
         if waited:  # what the tail's compile added to the wall time
             self.compile_split["tail_wait"] = self.last_wait
             self.compile_seconds += self.last_wait
-        carry = rollout.drive_queue(self._tail_compiled, params, starts, n_valid, carry=carry)
+        carry = rollout.drive_queue(self._tail_compiled, params, starts, n_valid, carry=carry, each_round=each_round)
         return sharding.fetch((carry[-1], carry[0]))
 
 
 def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: dict[str, list] | None = None,
              on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
              devices: Sequence[jax.Device] | None = None, tasks: Collection[str] | None = None,
-             rollouts: dict | None = None, store: executable_store.ExecutableStore | None = None) -> dict[str, list]:
+             rollouts: dict | None = None, store: executable_store.ExecutableStore | None = None,
+             on_progress: Callable[[dict[str, list]], None] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
     decode totals summed over the episode's actions (e.g. target_passes). The env slots are
@@ -320,7 +329,10 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     `on_batch(results, timing)` is called after every call with everything so far; timing
     holds the call's wall-clock (compilation excluded, reported once as compile_seconds),
     its control steps (iterations of the batched loop: one batched action each), env steps
-    and the number of devices.
+    and the number of devices. `on_progress(results)`: within a refilled call, every
+    `cfg.save_every_s` seconds, everything so far with the episodes that have ended (a
+    record is written once an episode ends, so a run saved this way and resumed runs only
+    the rest; each episode ends as it would in one run, its reset and keys being its own).
     `tasks` (names) runs only those of the env's tasks: task ids are data, so an env over
     several suites evaluates each with one program. `rollouts`, a dict the caller keeps for
     this env and policy, holds the compiled rollouts for reuse by later calls of the same
@@ -333,12 +345,10 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
         return results
     run, calls = _plan(env, policy, cfg, todo, seed, devices, rollouts, store)
     reused = run.compiled  # compiled by an earlier call: nothing to report as this call's compile
-    for chunk, inputs in calls:
-        run.compile(inputs)  # ahead of time, so call timings exclude compilation
-        t0 = time.perf_counter()
-        out, loop_steps = run(inputs)
-        dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
-        for i, (t, e) in enumerate(chunk):
+
+    def record(out: rollout.EpisodeResults, chunk, rows) -> None:
+        for i in rows:
+            t, e = chunk[i]
             name = env.tasks[t].name
             rec = results.setdefault(name, [None] * cfg.episodes_per_task)
             rec += [None] * (cfg.episodes_per_task - len(rec))
@@ -351,6 +361,28 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
                 failure = "timeout"
             rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
+
+    for chunk, inputs in calls:
+        run.compile(inputs)  # ahead of time, so call timings exclude compilation
+        each_round = None
+        if on_progress is not None and cfg.save_every_s > 0:
+            saved = np.zeros(len(chunk), bool)
+            last = [time.perf_counter()]
+
+            def each_round(c, chunk=chunk, saved=saved, last=last):
+                if time.perf_counter() - last[0] < cfg.save_every_s:
+                    return
+                next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))
+                new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
+                if new.any():
+                    record(out, chunk, np.flatnonzero(new))
+                    saved |= new
+                    on_progress(results)
+                last[0] = time.perf_counter()
+        t0 = time.perf_counter()
+        out, loop_steps = run(inputs, each_round)
+        dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
+        record(out, chunk, range(len(chunk)))
         if on_batch is not None:
             on_batch(results, {"batch_seconds": dt, "compile_seconds": 0.0 if reused else run.compile_seconds,
                                "compile_split": {} if reused else run.compile_split, "episodes": len(chunk),
