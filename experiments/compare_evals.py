@@ -111,6 +111,11 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
                                                     ("tasks only in the other", only_o),
                                                     ("other episode counts", counts)) if ts)
                          + " (evaluations of disjoint tasks join with '+')")
+    for which, ep in (("the baseline", eb), ("the other", eo)):
+        missing = sum(r is None for recs in ep.values() for r in recs)
+        if missing:
+            raise ValueError(f"{which} has {missing} episodes not run yet (an interrupted run: rerun its command to "
+                             "finish it)")
     suite_of = {t: v["suite"] for t, v in base["summary"]["tasks"].items()}
     suites: dict[str, dict] = {}
     for task in base.get("settings", {}).get("tasks") or eb:  # the evaluation's order of tasks (and suites)

@@ -64,6 +64,10 @@ def test_unpaired_evaluations_and_bad_files_are_refused(tmp_path):
     fewer = result("ar", {"a": [True] * 3, "b": [True] * 4, "c": [True] * 4}, SUITE_OF)
     with pytest.raises(ValueError, match="not paired"):
         compare_evals.compare(BASE, fewer, tolerance=2.0)
+    partial = result("heisd", {t: [e["success"] for e in BASE["episodes"][t]] for t in "abc"}, SUITE_OF)
+    partial["episodes"]["c"][1] = None  # saved mid-queue, not finished
+    with pytest.raises(ValueError, match="the other has 1 episodes not run yet"):
+        compare_evals.compare(BASE, partial, tolerance=2.0)
     bad = tmp_path / "x.json"
     bad.write_text(json.dumps({"summary": {}}))
     with pytest.raises(ValueError, match="not an experiments.evaluate result"):
