@@ -362,25 +362,28 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
 
+    def saver(chunk):
+        """`each_round` for one call: every `cfg.save_every_s` seconds, the episodes of `chunk`
+        that have ended since the last save recorded and handed to `on_progress`."""
+        saved, last = np.zeros(len(chunk), bool), time.perf_counter()
+
+        def each_round(c):
+            nonlocal last
+            if time.perf_counter() - last < cfg.save_every_s:
+                return
+            next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))  # waits for this round
+            new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
+            if new.any():
+                record(out, chunk, np.flatnonzero(new))
+                saved[new] = True
+                on_progress(results)
+            last = time.perf_counter()
+        return each_round
+
     for chunk, inputs in calls:
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
-        each_round = None
-        if on_progress is not None and cfg.save_every_s > 0:
-            saved = np.zeros(len(chunk), bool)
-            last = [time.perf_counter()]
-
-            def each_round(c, chunk=chunk, saved=saved, last=last):
-                if time.perf_counter() - last[0] < cfg.save_every_s:
-                    return
-                next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))
-                new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
-                if new.any():
-                    record(out, chunk, np.flatnonzero(new))
-                    saved |= new
-                    on_progress(results)
-                last[0] = time.perf_counter()
         t0 = time.perf_counter()
-        out, loop_steps = run(inputs, each_round)
+        out, loop_steps = run(inputs, saver(chunk) if on_progress is not None and cfg.save_every_s > 0 else None)
         dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
         record(out, chunk, range(len(chunk)))
         if on_batch is not None:
