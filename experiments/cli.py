@@ -19,6 +19,7 @@ import logging
 import os
 from pathlib import Path
 import shlex
+import signal
 import sys
 from typing import Callable, NoReturn
 
@@ -144,6 +145,34 @@ def run(main: Callable[[list[str]], object]) -> None:
             fail(str(e))
 
     app.run(checked_main, flags_parser=_parse_flags)
+
+
+class StopOnSignals:
+    """A long run's way out that keeps its work: the first SIGTERM (`timeout`, a scheduler, a
+    lease's end) or SIGINT (Ctrl-C) only sets a flag, which the run reads between rounds
+    (`StopOnSignals.__call__`, an `evaluator.evaluate` `stop`), saving what has ended before it
+    exits; the handlers then return to the defaults, so a second signal ends the process at
+    once (during a compile, which no round interrupts, that is the way out). `exit_code`:
+    the shell's 128 + the signal's number."""
+
+    def __init__(self):
+        self.signum = None
+        self._before = {s: signal.signal(s, self._handle) for s in (signal.SIGTERM, signal.SIGINT)}
+
+    def _handle(self, signum, frame) -> None:
+        del frame
+        self.signum = signum
+        for s, handler in self._before.items():
+            signal.signal(s, handler)
+        print(f"\n{signal.Signals(signum).name}: stopping after this round, its ended episodes saved "
+              "(again to stop now)", file=sys.stderr, flush=True)
+
+    def __call__(self) -> bool:
+        return self.signum is not None
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + int(self.signum or 0)
 
 
 def task_list(suites: str, names: list[str] | None = None) -> list:

@@ -5,14 +5,17 @@
 Writes per-task and per-suite success rates and per-action decoding statistics (target
 passes per action, wall-clock per batched control step) to --out (JSON) after every batch,
 and every --save_every_s seconds within a refilled queue (the episodes that have ended);
-rerunning the same command resumes where it stopped. A results file written with other
-settings is refused, never overwritten (use another --out).
+rerunning the same command resumes where it stopped. SIGTERM or Ctrl-C stops a refilled
+queue after its round in progress, the episodes that have ended written first (a second
+signal stops at once). A results file written with other settings is refused, never
+overwritten (use another --out).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
+import sys
 import time
 
 T_START = time.perf_counter()  # the summary's wall time counts the imports below (JAX, MuJoCo)
@@ -160,7 +163,14 @@ def main(argv):
               f"{sum(s['successes'] for s in summary['suites'].values()) / max(ended, 1):.3f}, "
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
-    results = ev.evaluate(env, policy, cfg, done, on_batch, store=store, on_progress=on_progress)
+    stop = cli.StopOnSignals()
+    try:
+        results = ev.evaluate(env, policy, cfg, done, on_batch, store=store, on_progress=on_progress, stop=stop)
+    except ev.EvaluationStopped as e:
+        ended = sum(r is not None for recs in e.results.values() for r in recs)
+        print(f"stopped: {ended}/{n_total} episodes in {os.path.abspath(FLAGS.out)}; the same command runs the rest",
+              flush=True)
+        sys.exit(stop.exit_code)
     summary = write(results)
     print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
           f"{'passes/ep':>11}")

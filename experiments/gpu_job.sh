@@ -11,7 +11,8 @@
 #
 # GPU_JOB_STEP_TIMEOUT=SECONDS (in start's environment, or the foreground's) ends any one
 # command that runs longer (logged as "== timed out"), and the job goes on to the next: a
-# command that hangs (say, a kernel's compile) then costs at most that much device time.
+# command that hangs (say, a kernel's compile) then costs at most that much device time. It
+# gets SIGTERM first and SIGKILL 10 s later: `evaluate` writes its ended episodes in between.
 #
 # per-gpu runs command i alone on GPU i (CUDA_VISIBLE_DEVICES=i), all at once, each with its
 # own output folder $OUT/gpuI (its $OUT, its job.log) and compilation cache, and waits for all:

@@ -277,3 +277,20 @@ def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
     assert ev.evaluate(env, policy, cfg, done=saved, rollouts=rollouts) == whole
     with pytest.raises(ValueError, match="save_every_s must be >= 0"):
         ev.EvalConfig(save_every_s=-1.0)
+
+    # `stop` (a signal's flag) ends the queue after a round, its ended episodes handed over
+    # first, with no periodic save at all; the resumed run again ends as one run.
+    asked = []
+    ev.evaluate(env, policy, cfg, rollouts=rollouts, stop=lambda: asked.append(1) or False)
+    rounds = len(asked)  # `stop` is asked before the call and after each round
+    cfg0, saves = dataclasses.replace(cfg, save_every_s=0.0), []
+    with pytest.raises(ev.EvaluationStopped) as stopped:
+        ev.evaluate(env, policy, cfg0, rollouts=rollouts, on_progress=lambda r: saves.append(json.loads(json.dumps(r))),
+                    stop=lambda: (asked.append(1) or len(asked) - rounds > 0.8 * rounds))
+    (saved,) = saves
+    ended = [r for r in saved["left_block_plate"] if r is not None]
+    assert 0 < len(ended) < 3 and all(r in whole["left_block_plate"] for r in ended)
+    assert stopped.value.results == saved
+    assert ev.evaluate(env, policy, cfg0, done=saved, rollouts=rollouts) == whole
+    with pytest.raises(ev.EvaluationStopped):  # asked before a call: nothing runs
+        ev.evaluate(env, policy, cfg0, rollouts=rollouts, stop=lambda: True)

@@ -2,7 +2,9 @@
 tasks, `num_envs` episodes at a time under one jitted rollout (the env batch sharded over
 all devices, see `sharding`), and aggregates success rates per task and suite. Progress is
 handed to callbacks after every batch, and within a refilled queue every `save_every_s`
-seconds, so callers can persist results as episodes end and resume an interrupted run.
+seconds, so callers can persist results as episodes end and resume an interrupted run. A
+caller's `stop` (say, set by a signal) ends a queue after the round in progress, its ended
+episodes handed over first (`EvaluationStopped`).
 """
 
 from __future__ import annotations
@@ -20,6 +22,15 @@ from envs import rollout, tasks as tasks_lib
 from envs.env import TabletopEnv
 from heisd_jax import sharding, xla_options
 from heisd_jax.harness import executable_store
+
+
+class EvaluationStopped(Exception):
+    """`evaluate` ended early because its `stop()` said so, after handing the episodes that
+    had ended to `on_progress` (`results`: everything so far)."""
+
+    def __init__(self, results: dict[str, list]):
+        super().__init__("evaluation stopped on request")
+        self.results = results
 
 
 @dataclasses.dataclass(frozen=True)
@@ -318,7 +329,8 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
              on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
              devices: Sequence[jax.Device] | None = None, tasks: Collection[str] | None = None,
              rollouts: dict | None = None, store: executable_store.ExecutableStore | None = None,
-             on_progress: Callable[[dict[str, list]], None] | None = None) -> dict[str, list]:
+             on_progress: Callable[[dict[str, list]], None] | None = None,
+             stop: Callable[[], bool] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
     decode totals summed over the episode's actions (e.g. target_passes). The env slots are
@@ -333,6 +345,11 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     `cfg.save_every_s` seconds, everything so far with the episodes that have ended (a
     record is written once an episode ends, so a run saved this way and resumed runs only
     the rest; each episode ends as it would in one run, its reset and keys being its own).
+    `stop()`, asked after every queue round and before every call: when it says True, the
+    episodes that have ended are recorded and handed to `on_progress` (with a refilled queue),
+    and `EvaluationStopped` is raised; a resumed run then runs only the rest. Asked between
+    rounds, where the round's carry is still the host's to read (each round is given the
+    last one's buffers), so a signal handler should only set what `stop` reads.
     `tasks` (names) runs only those of the env's tasks: task ids are data, so an env over
     several suites evaluates each with one program. `rollouts`, a dict the caller keeps for
     this env and policy, holds the compiled rollouts for reuse by later calls of the same
@@ -363,27 +380,36 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
 
     def saver(chunk):
-        """`each_round` for one call: every `cfg.save_every_s` seconds, the episodes of `chunk`
-        that have ended since the last save recorded and handed to `on_progress`."""
+        """`each_round` for one call: every `cfg.save_every_s` seconds (0: never), and when
+        `stop()` says so, the episodes of `chunk` that have ended since the last save recorded
+        and handed to `on_progress`; then, if stopping, `EvaluationStopped`."""
         saved, last = np.zeros(len(chunk), bool), time.perf_counter()
 
         def each_round(c):
             nonlocal last
-            if time.perf_counter() - last < cfg.save_every_s:
+            stopping = stop is not None and stop()
+            due = cfg.save_every_s > 0 and time.perf_counter() - last >= cfg.save_every_s
+            if not (stopping or due):
                 return
-            next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))  # waits for this round
-            new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
-            if new.any():
-                record(out, chunk, np.flatnonzero(new))
-                saved[new] = True
-                on_progress(results)
+            if on_progress is not None:
+                next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))  # waits for this round
+                new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
+                if new.any():
+                    record(out, chunk, np.flatnonzero(new))
+                    saved[new] = True
+                    on_progress(results)
             last = time.perf_counter()
+            if stopping:
+                raise EvaluationStopped(results)
         return each_round
 
     for chunk, inputs in calls:
+        if stop is not None and stop():
+            raise EvaluationStopped(results)
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
-        out, loop_steps = run(inputs, saver(chunk) if on_progress is not None and cfg.save_every_s > 0 else None)
+        progressing = stop is not None or (on_progress is not None and cfg.save_every_s > 0)
+        out, loop_steps = run(inputs, saver(chunk) if progressing else None)
         dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
         record(out, chunk, range(len(chunk)))
         if on_batch is not None:
