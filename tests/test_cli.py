@@ -188,3 +188,22 @@ def test_config_digest_is_the_settings_in_effect_not_those_given():
     assert cli.config_digest("heisd", spelled_out) == default
     assert cli.config_digest("heisd", {"acceptance": "token_relaxed"}) != default
     assert cli.config_digest("ar", {}) != cli.config_digest("ar", {"dtype": "bfloat16"})
+
+
+def test_the_first_signal_asks_a_run_to_stop_and_the_second_ends_it():
+    """`cli.StopOnSignals`: SIGTERM only sets the flag a run reads between rounds, and puts the
+    handlers back, so a second signal takes its default course."""
+    import signal
+
+    from experiments import cli
+
+    before = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    stop = cli.StopOnSignals()
+    try:
+        assert not stop()
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert stop() and stop.exit_code == 128 + signal.SIGTERM
+        assert (signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)) == before
+    finally:
+        signal.signal(signal.SIGTERM, before[0])
+        signal.signal(signal.SIGINT, before[1])
