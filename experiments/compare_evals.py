@@ -10,7 +10,9 @@ the baseline (the success guard of issue 23).
       experiments/results/eval_heisd_fixed_target_h100.json.gz [MORE.json ...] [--tolerance=2]
 
 Each file is an `experiments.evaluate --out` result; all must hold the same tasks with the
-same number of episodes each (the evaluator's fixed initial states pair them).
+same number of episodes each (the evaluator's fixed initial states pair them). `--common_tasks`
+compares on the tasks all of them hold, `--ended_only` on the episodes all of them have ended
+(an evaluation cut mid-queue against a whole one).
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ FLAGS = flags.FLAGS
 flags.DEFINE_float("tolerance", 2.0, "Success guard: the largest drop below the baseline, in points, on any suite.")
 flags.DEFINE_bool("common_tasks", False, "Compare on the tasks every evaluation holds (the others are named and left "
                   "out), e.g. a partial run against a whole baseline. Off: evaluations of other tasks are refused.")
+flags.DEFINE_bool("ended_only", False, "Compare on the episodes every evaluation has ended (an evaluation cut "
+                  "mid-queue against a whole one). Its rates lean high: a cut run's unended episodes are the ones "
+                  "still running, the slow ones, among them its time-outs. Off: an unfinished evaluation is refused.")
 
 
 def label(result: dict) -> str:
@@ -92,6 +97,21 @@ def common(results: list[dict]) -> tuple[list[dict], list[str]]:
                 summary=dict(r["summary"], tasks={t: v for t, v in r["summary"]["tasks"].items() if t in keep}))
            for r in results]
     return out, sorted(set().union(*(set(r["episodes"]) for r in results)) - keep)
+
+
+def ended(results: list[dict]) -> tuple[list[dict], int]:
+    """The results restricted to the episodes (initial states) every one of them has ended,
+    tasks with none dropped, and how many episodes of the first were left out."""
+    order = results[0].get("settings", {}).get("tasks") or list(results[0]["episodes"])
+    keep = {t: [i for i in range(len(results[0]["episodes"][t]))
+                if all(i < len(r["episodes"][t]) and r["episodes"][t][i] is not None for r in results)]
+            for t in order if all(t in r["episodes"] for r in results)}
+    keep = {t: idx for t, idx in keep.items() if idx}
+    out = [dict(r, settings=dict(r.get("settings", {}), tasks=list(keep)),
+                episodes={t: [r["episodes"][t][i] for i in idx] for t, idx in keep.items()},
+                summary=dict(r["summary"], tasks={t: r["summary"]["tasks"][t] for t in keep}))
+           for r in results]
+    return out, sum(map(len, results[0]["episodes"].values())) - sum(map(len, keep.values()))
 
 
 def load(arg: str) -> dict:
@@ -192,6 +212,13 @@ def main(argv):
                 raise ValueError("the evaluations hold no task in common")
             if left_out:
                 print(f"left out ({len(left_out)} tasks not in every evaluation): {', '.join(left_out)}")
+        if FLAGS.ended_only:
+            (base, *others), unended = ended([base, *others])
+            if not base["episodes"]:
+                raise ValueError("no episode has ended in every evaluation")
+            if unended:
+                print(f"left out: {unended} of the baseline's episodes not ended in every evaluation "
+                      "(the rates below lean high: the unended episodes are the slow ones)")
         rows = [compare(base, o, FLAGS.tolerance) for o in others]
     except ValueError as e:
         raise app.UsageError(str(e)) from e

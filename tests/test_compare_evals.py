@@ -121,3 +121,18 @@ def test_common_tasks_restrict_every_evaluation_to_the_shared_ones():
     r = compare_evals.compare(base, other, 2.0)
     assert (r["suites"]["spatial"]["base_only"], r["suites"]["spatial"]["episodes"]) == (1, 4)
     assert r["suites"]["long"]["diff_points"] == -75.0
+
+
+def test_ended_only_compares_the_episodes_every_evaluation_has_ended():
+    """A run cut mid-queue compares on the initial states it has ended, paired as in the whole run."""
+    cut = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]}, SUITE_OF)
+    cut["episodes"]["a"][1] = cut["episodes"]["c"][0] = None
+    cut["episodes"]["b"] = [None] * 4
+    (base, other), unended = compare_evals.ended([BASE, cut])
+    assert unended == 6 and list(base["episodes"]) == ["a", "c"] == other["settings"]["tasks"]
+    assert [e["success"] for e in base["episodes"]["c"]] == [False, True, True]  # states 1-3, paired with the cut run's
+    r = compare_evals.compare(base, other, 2.0)
+    assert r["suites"]["spatial"]["episodes"] == 3 and r["suites"]["long"]["base_only"] == 0
+    with pytest.raises(ValueError, match="not run yet"):
+        compare_evals.compare(BASE, cut, 2.0)
+    assert compare_evals.ended([BASE, BASE]) == ([BASE, BASE], 0)
