@@ -174,6 +174,15 @@ class StopOnSignals:
     def exit_code(self) -> int:
         return 128 + int(self.signum or 0)
 
+    def exit(self) -> None:
+        """Ends the process now with `exit_code`, its output flushed, once the run's work is
+        written: without waiting for threads still compiling (a queue's tail program compiles
+        in the background, minutes at 7B, and the interpreter's exit would join it, outlasting
+        the grace a scheduler gives between SIGTERM and SIGKILL)."""
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(self.exit_code)
+
 
 def task_list(suites: str, names: list[str] | None = None) -> list:
     """`envs.tasks.get_tasks(suites, names or None)`, an unknown suite or task raised as the

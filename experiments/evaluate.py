@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import sys
 import time
 
 T_START = time.perf_counter()  # the summary's wall time counts the imports below (JAX, MuJoCo)
@@ -170,7 +169,7 @@ def main(argv):
         ended = sum(r is not None for recs in e.results.values() for r in recs)
         print(f"stopped: {ended}/{n_total} episodes in {os.path.abspath(FLAGS.out)}; the same command runs the rest",
               flush=True)
-        sys.exit(stop.exit_code)
+        stop.exit()
     summary = write(results)
     print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
           f"{'passes/ep':>11}")

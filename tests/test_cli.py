@@ -207,3 +207,21 @@ def test_the_first_signal_asks_a_run_to_stop_and_the_second_ends_it():
     finally:
         signal.signal(signal.SIGTERM, before[0])
         signal.signal(signal.SIGINT, before[1])
+
+
+def test_a_stopped_run_exits_without_joining_a_compile_thread():
+    """`StopOnSignals.exit`: the exit code of the signal, the output flushed, and no wait for a
+    thread still working (a queue's tail compiling in the background)."""
+    import time
+
+    code = ("import os, signal, threading, time\n"
+            "from experiments import cli\n"
+            "stop = cli.StopOnSignals()\n"
+            "threading.Thread(target=time.sleep, args=(60,)).start()\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "print('saved', end='')\n"
+            "stop.exit()\n")
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=50,
+                          cwd=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    assert (done.returncode, done.stdout) == (143, "saved") and time.perf_counter() - t0 < 30
