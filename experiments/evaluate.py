@@ -141,13 +141,16 @@ def main(argv):
                                                  "timing": timing, **as_ar, **made})
         return summary
 
-    def on_batch(results, t):
+    def add(t):  # one call's timing (`on_batch`'s, or a stopped call's)
         progress["episodes"] += t["episodes"]
         timing["batches"] += 1
         timing["compile_seconds"], timing["compile_split"] = t["compile_seconds"], t["compile_split"]
         timing["devices"] = t.get("devices", 1)
         for k in ("batch_seconds", "control_steps", "env_steps"):
             timing[k] += t[k]
+
+    def on_batch(results, t):
+        add(t)
         summary = write(results)
         succ = sum(s["successes"] for s in summary["suites"].values())
         print(f"  {progress['episodes']}/{n_total} episodes, success so far {succ / max(progress['episodes'], 1):.3f}, "
@@ -166,6 +169,13 @@ def main(argv):
     try:
         results = ev.evaluate(env, policy, cfg, done, on_batch, store=store, on_progress=on_progress, stop=stop)
     except ev.EvaluationStopped as e:
+        if e.timing is not None:  # the stopped call's speed, its ended episodes already written
+            add(e.timing)
+            timing["stopped"] = True
+            write(e.results)
+            t = e.timing
+            print(f"  stopped after {t['control_steps']} control steps: {1e3 * t['batch_seconds'] / max(t['control_steps'], 1):.1f} "
+                  f"ms per control step, compile {t['compile_seconds']:.0f}s", flush=True)
         ended = sum(r is not None for recs in e.results.values() for r in recs)
         print(f"stopped: {ended}/{n_total} episodes in {os.path.abspath(FLAGS.out)}; the same command runs the rest",
               flush=True)

@@ -280,8 +280,9 @@ def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
 
     # `stop` (a signal's flag) ends the queue after a round, its ended episodes handed over
     # first, with no periodic save at all; the resumed run again ends as one run.
-    asked = []
-    ev.evaluate(env, policy, cfg, rollouts=rollouts, stop=lambda: asked.append(1) or False)
+    asked, calls = [], []
+    ev.evaluate(env, policy, cfg, rollouts=rollouts, stop=lambda: asked.append(1) or False,
+                on_batch=lambda r, t: calls.append(t))
     rounds = len(asked)  # `stop` is asked before the call and after each round
     cfg0, saves = dataclasses.replace(cfg, save_every_s=0.0), []
     with pytest.raises(ev.EvaluationStopped) as stopped:
@@ -291,6 +292,13 @@ def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
     ended = [r for r in saved["left_block_plate"] if r is not None]
     assert 0 < len(ended) < 3 and all(r in whole["left_block_plate"] for r in ended)
     assert stopped.value.results == saved
+    # ... with the stopped call's speed: the rounds it ran, its ended episodes, and the env
+    # steps of those and of the running ones
+    (call,), part = calls, stopped.value.timing
+    assert 0 < part["control_steps"] < call["control_steps"] and part["episodes"] == len(ended)
+    assert sum(r["steps"] for r in ended) < part["env_steps"] < call["env_steps"]
+    assert part["batch_seconds"] > 0 and part["devices"] == call["devices"]
     assert ev.evaluate(env, policy, cfg0, done=saved, rollouts=rollouts) == whole
-    with pytest.raises(ev.EvaluationStopped):  # asked before a call: nothing runs
+    with pytest.raises(ev.EvaluationStopped) as stopped:  # asked before a call: nothing runs
         ev.evaluate(env, policy, cfg0, rollouts=rollouts, stop=lambda: True)
+    assert stopped.value.timing is None

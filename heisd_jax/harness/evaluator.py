@@ -26,11 +26,13 @@ from heisd_jax.harness import executable_store
 
 class EvaluationStopped(Exception):
     """`evaluate` ended early because its `stop()` said so, after handing the episodes that
-    had ended to `on_progress` (`results`: everything so far)."""
+    had ended to `on_progress` (`results`: everything so far). `timing`: the stopped call's
+    share, as `on_batch`'s timing for a call (its episodes: those that ended; its env steps:
+    theirs and the running episodes' so far); None when it stopped before a call."""
 
-    def __init__(self, results: dict[str, list]):
+    def __init__(self, results: dict[str, list], timing: dict | None = None):
         super().__init__("evaluation stopped on request")
-        self.results = results
+        self.results, self.timing = results, timing
 
 
 @dataclasses.dataclass(frozen=True)
@@ -306,6 +308,7 @@ class BatchRollout:
         """Host copies of (per-episode results [queue], control steps the loop ran).
         `each_round(carry)`: a queue's host-driven rounds, each (`rollout.drive_queue`)."""
         self.compile(inputs)
+        self.last_wait = 0.0
         if self._loop is None:
             return sharding.fetch(self._compiled(*inputs))
         params, n_valid = inputs[0], inputs[3]
@@ -388,19 +391,22 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
         def each_round(c):
             nonlocal last
             stopping = stop is not None and stop()
-            due = cfg.save_every_s > 0 and time.perf_counter() - last >= cfg.save_every_s
+            due = on_progress is not None and cfg.save_every_s > 0 and time.perf_counter() - last >= cfg.save_every_s
             if not (stopping or due):
                 return
-            if on_progress is not None:
-                next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))  # waits for this round
-                new = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)] & ~saved
-                if new.any():
-                    record(out, chunk, np.flatnonzero(new))
-                    saved[new] = True
-                    on_progress(results)
+            next_ep, slot_ep, out = sharding.fetch((c[2], c[3], c[-1]))  # waits for this round
+            ended = rollout.ended_episodes(next_ep, slot_ep, out.steps.shape[0])[:len(chunk)]
+            if on_progress is not None and (ended & ~saved).any():
+                record(out, chunk, np.flatnonzero(ended & ~saved))
+                saved[ended] = True
+                on_progress(results)
             last = time.perf_counter()
             if stopping:
-                raise EvaluationStopped(results)
+                loop_steps, steps = sharding.fetch((c[0], rollout.queue_states(c).step))
+                running = np.asarray(slot_ep) < out.steps.shape[0]
+                raise EvaluationStopped(results, {"control_steps": int(loop_steps), "episodes": int(ended.sum()),
+                                                  "env_steps": int(out.steps[:len(chunk)][ended].sum()
+                                                                   + np.asarray(steps)[running].sum())})
         return each_round
 
     for chunk, inputs in calls:
@@ -409,14 +415,21 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
         run.compile(inputs)  # ahead of time, so call timings exclude compilation
         t0 = time.perf_counter()
         progressing = stop is not None or (on_progress is not None and cfg.save_every_s > 0)
-        out, loop_steps = run(inputs, saver(chunk) if progressing else None)
-        dt = time.perf_counter() - t0 - run.last_wait  # a wait for the tail's compile counts as compile
+
+        def call_timing() -> dict:
+            return {"batch_seconds": time.perf_counter() - t0 - run.last_wait,  # a wait for the tail's compile
+                    "compile_seconds": 0.0 if reused else run.compile_seconds,   # counts as compile
+                    "compile_split": {} if reused else run.compile_split, "devices": run.devices}
+        try:
+            out, loop_steps = run(inputs, saver(chunk) if progressing else None)
+        except EvaluationStopped as e:
+            e.timing = {**call_timing(), **e.timing}
+            raise
+        timing = call_timing()
         record(out, chunk, range(len(chunk)))
         if on_batch is not None:
-            on_batch(results, {"batch_seconds": dt, "compile_seconds": 0.0 if reused else run.compile_seconds,
-                               "compile_split": {} if reused else run.compile_split, "episodes": len(chunk),
-                               "control_steps": int(loop_steps), "env_steps": int(np.sum(out.steps[:len(chunk)])),
-                               "devices": run.devices})
+            on_batch(results, {**timing, "episodes": len(chunk), "control_steps": int(loop_steps),
+                               "env_steps": int(np.sum(out.steps[:len(chunk)]))})
     return results
 
 
