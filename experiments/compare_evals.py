@@ -101,22 +101,36 @@ def common(results: list[dict]) -> tuple[list[dict], list[str]]:
 
 def ended(results: list[dict]) -> tuple[list[dict], int]:
     """The results restricted to the episodes (initial states) every one of them has ended,
-    tasks with none dropped, and how many episodes of the first were left out."""
-    order = results[0].get("settings", {}).get("tasks") or list(results[0]["episodes"])
-    keep = {t: [i for i in range(len(results[0]["episodes"][t]))
-                if all(i < len(r["episodes"][t]) and r["episodes"][t][i] is not None for r in results)]
-            for t in order if all(t in r["episodes"] for r in results)}
+    tasks with none dropped, and how many episodes were left out. ValueError where they are
+    of other tasks or episode counts (`common` first restricts them to the shared tasks)."""
+    first = results[0]["episodes"]
+    if any({t: len(e) for t, e in r["episodes"].items()} != {t: len(e) for t, e in first.items()} for r in results):
+        raise ValueError("the evaluations hold other tasks or episode counts: they are not paired "
+                         "(--common_tasks compares on the tasks all of them hold)")
+    order = results[0].get("settings", {}).get("tasks") or list(first)
+    keep = {t: [i for i in range(len(first[t])) if all(r["episodes"][t][i] is not None for r in results)]
+            for t in order}
     keep = {t: idx for t, idx in keep.items() if idx}
     out = [dict(r, settings=dict(r.get("settings", {}), tasks=list(keep)),
                 episodes={t: [r["episodes"][t][i] for i in idx] for t, idx in keep.items()},
                 summary=dict(r["summary"], tasks={t: r["summary"]["tasks"][t] for t in keep}))
            for r in results]
-    return out, sum(map(len, results[0]["episodes"].values())) - sum(map(len, keep.values()))
+    return out, sum(map(len, first.values())) - sum(map(len, keep.values()))
+
+
+def with_unstarted(result: dict) -> dict:
+    """`result` with a task its settings name but its episodes lack (a run cut before it
+    started the task) given that many unended episodes (None), as a run cut mid-task has."""
+    s = result.get("settings", {})
+    missing = [t for t in s.get("tasks") or [] if t not in result["episodes"]]
+    if not missing or not s.get("episodes_per_task"):
+        return result
+    return dict(result, episodes={**result["episodes"], **{t: [None] * s["episodes_per_task"] for t in missing}})
 
 
 def load(arg: str) -> dict:
     """An evaluate result, or several joined with '+' (`join`)."""
-    return join([cli.load_eval_results(p) for p in arg.split("+")])
+    return join([with_unstarted(cli.load_eval_results(p)) for p in arg.split("+")])
 
 
 def compare(base: dict, other: dict, tolerance: float) -> dict:
@@ -135,7 +149,7 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
         missing = sum(r is None for recs in ep.values() for r in recs)
         if missing:
             raise ValueError(f"{which} has {missing} episodes not run yet (an interrupted run: rerun its command to "
-                             "finish it)")
+                             "finish it, or compare with --ended_only on the episodes it has ended)")
     suite_of = {t: v["suite"] for t, v in base["summary"]["tasks"].items()}
     suites: dict[str, dict] = {}
     for task in base.get("settings", {}).get("tasks") or eb:  # the evaluation's order of tasks (and suites)

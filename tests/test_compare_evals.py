@@ -127,7 +127,10 @@ def test_ended_only_compares_the_episodes_every_evaluation_has_ended():
     """A run cut mid-queue compares on the initial states it has ended, paired as in the whole run."""
     cut = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]}, SUITE_OF)
     cut["episodes"]["a"][1] = cut["episodes"]["c"][0] = None
-    cut["episodes"]["b"] = [None] * 4
+    del cut["episodes"]["b"]  # not started: its settings name it, its file holds nothing of it
+    cut["settings"]["episodes_per_task"] = 4
+    cut = compare_evals.with_unstarted(cut)
+    assert cut["episodes"]["b"] == [None] * 4
     (base, other), unended = compare_evals.ended([BASE, cut])
     assert unended == 6 and list(base["episodes"]) == ["a", "c"] == other["settings"]["tasks"]
     assert [e["success"] for e in base["episodes"]["c"]] == [False, True, True]  # states 1-3, paired with the cut run's
@@ -136,3 +139,5 @@ def test_ended_only_compares_the_episodes_every_evaluation_has_ended():
     with pytest.raises(ValueError, match="not run yet"):
         compare_evals.compare(BASE, cut, 2.0)
     assert compare_evals.ended([BASE, BASE]) == ([BASE, BASE], 0)
+    with pytest.raises(ValueError, match="not paired.*--common_tasks"):  # a task one of them lacks
+        compare_evals.ended([BASE, result("heisd", {"a": [True] * 4}, SUITE_OF)])
