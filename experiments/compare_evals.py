@@ -92,11 +92,15 @@ def common(results: list[dict]) -> tuple[list[dict], list[str]]:
     the tasks left out."""
     keep = set.intersection(*(set(r["episodes"]) for r in results))
     order = results[0].get("settings", {}).get("tasks") or list(results[0]["episodes"])
-    out = [dict(r, settings=dict(r.get("settings", {}), tasks=[t for t in order if t in keep]),
-                episodes={t: e for t, e in r["episodes"].items() if t in keep},
-                summary=dict(r["summary"], tasks={t: v for t, v in r["summary"]["tasks"].items() if t in keep}))
-           for r in results]
+    out = [_restricted(r, {t: r["episodes"][t] for t in order if t in keep}) for r in results]
     return out, sorted(set().union(*(set(r["episodes"]) for r in results)) - keep)
+
+
+def _restricted(result: dict, episodes: dict[str, list]) -> dict:
+    """`result` holding only `episodes` (task -> records, in the order to compare them): its
+    settings' task list and its summary's tasks follow."""
+    return dict(result, settings=dict(result.get("settings", {}), tasks=list(episodes)), episodes=episodes,
+                summary=dict(result["summary"], tasks={t: result["summary"]["tasks"][t] for t in episodes}))
 
 
 def ended(results: list[dict]) -> tuple[list[dict], int]:
@@ -111,10 +115,7 @@ def ended(results: list[dict]) -> tuple[list[dict], int]:
     keep = {t: [i for i in range(len(first[t])) if all(r["episodes"][t][i] is not None for r in results)]
             for t in order}
     keep = {t: idx for t, idx in keep.items() if idx}
-    out = [dict(r, settings=dict(r.get("settings", {}), tasks=list(keep)),
-                episodes={t: [r["episodes"][t][i] for i in idx] for t, idx in keep.items()},
-                summary=dict(r["summary"], tasks={t: r["summary"]["tasks"][t] for t in keep}))
-           for r in results]
+    out = [_restricted(r, {t: [r["episodes"][t][i] for i in idx] for t, idx in keep.items()}) for r in results]
     return out, sum(map(len, first.values())) - sum(map(len, keep.values()))
 
 
