@@ -127,8 +127,16 @@ def main(argv):
     # A budget=auto method built as plain AR at this batch size (methods._as_ar) says so.
     as_ar = {"runs_as_ar": True} if policy.meta.get("runs_as_ar") else {}
 
-    def write(results):
+    def folded(t):  # `timing` with one call's timing (`on_batch`'s, or a running or stopped call's share) added
+        out = {**timing, "batches": timing["batches"] + 1, "compile_seconds": t["compile_seconds"],
+               "compile_split": t["compile_split"], "devices": t.get("devices", 1)}
+        for k in ("batch_seconds", "control_steps", "env_steps"):
+            out[k] = timing[k] + t[k]
+        return out
+
+    def write(results, timing):
         summary = ev.summarize(env.tasks, results)
+        timing = dict(timing)
         if timing["control_steps"]:
             timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / timing["control_steps"]
             timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
@@ -141,25 +149,18 @@ def main(argv):
                                                  "timing": timing, **as_ar, **made})
         return summary
 
-    def add(t):  # one call's timing (`on_batch`'s, or a stopped call's)
-        progress["episodes"] += t["episodes"]
-        timing["batches"] += 1
-        timing["compile_seconds"], timing["compile_split"] = t["compile_seconds"], t["compile_split"]
-        timing["devices"] = t.get("devices", 1)
-        for k in ("batch_seconds", "control_steps", "env_steps"):
-            timing[k] += t[k]
-
     def on_batch(results, t):
-        add(t)
-        summary = write(results)
+        progress["episodes"] += t["episodes"]
+        timing.update(folded(t))
+        summary = write(results, timing)
         succ = sum(s["successes"] for s in summary["suites"].values())
         print(f"  {progress['episodes']}/{n_total} episodes, success so far {succ / max(progress['episodes'], 1):.3f}, "
               f"batch {t['batch_seconds']:.1f}s ({1e3 * t['batch_seconds'] / max(t['control_steps'], 1):.1f} ms per "
               f"control step, {t['env_steps'] / t['batch_seconds']:.0f} env steps/s), "
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
-    def on_progress(results):
-        summary = write(results)
+    def on_progress(results, t):  # the running call's share so far, marked as such
+        summary = write(results, {**folded(t), "running": True})
         ended = sum(s["episodes"] for s in summary["suites"].values())
         print(f"  {ended}/{n_total} episodes ended (saved), success so far "
               f"{sum(s['successes'] for s in summary['suites'].values()) / max(ended, 1):.3f}, "
@@ -170,9 +171,8 @@ def main(argv):
         results = ev.evaluate(env, policy, cfg, done, on_batch, store=store, on_progress=on_progress, stop=stop)
     except ev.EvaluationStopped as e:
         if e.timing is not None:  # the stopped call's speed, its ended episodes already written
-            add(e.timing)
-            timing["stopped"] = True
-            write(e.results)
+            timing.update(folded(e.timing), stopped=True)
+            write(e.results, timing)
             t = e.timing
             print(f"  stopped after {t['control_steps']} control steps: {1e3 * t['batch_seconds'] / max(t['control_steps'], 1):.1f} "
                   f"ms per control step, compile {t['compile_seconds']:.0f}s", flush=True)
@@ -180,7 +180,7 @@ def main(argv):
         print(f"stopped: {ended}/{n_total} episodes in {os.path.abspath(FLAGS.out)}; the same command runs the rest",
               flush=True)
         stop.exit()
-    summary = write(results)
+    summary = write(results, timing)
     print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
           f"{'passes/ep':>11}")
     for name, s in summary["suites"].items():

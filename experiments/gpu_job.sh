@@ -56,6 +56,10 @@ install() {
     || { echo "installing the carried wheels (.whl/*.whl) failed" >&2; exit 1; }
 }
 
+log() {  # tees into job.log, ignoring SIGTERM: a stopped command's last words reach the log
+  trap '' TERM; exec tee -a "$OUT/job.log"
+}
+
 run() {  # runs the commands separated by `--` one after another; exits with the last failure
   local rc=0 cmd=() arg
   : "${OUT:?OUT must name the folder that comes back}"; mkdir -p "$OUT"
@@ -64,9 +68,9 @@ run() {  # runs the commands separated by `--` one after another; exits with the
     [ ${#cmd[@]} -eq 0 ] && continue
     echo "== $(date -u +%FT%TZ) ${cmd[*]}" | tee -a "$OUT/job.log"
     if [ -n "${GPU_JOB_STEP_TIMEOUT:-}" ]; then
-      timeout --kill-after=10 "$GPU_JOB_STEP_TIMEOUT" "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+      timeout --kill-after=10 "$GPU_JOB_STEP_TIMEOUT" "${cmd[@]}" 2>&1 | log
     else
-      "${cmd[@]}" 2>&1 | tee -a "$OUT/job.log"
+      "${cmd[@]}" 2>&1 | log
     fi
     local s=${PIPESTATUS[0]}; [ "$s" -ne 0 ] && rc=$s
     [ "$s" -eq 124 ] || [ "$s" -eq 137 ] && [ -n "${GPU_JOB_STEP_TIMEOUT:-}" ] && \
@@ -159,8 +163,12 @@ case "${1:-}" in
       while [ "$(date +%s)" -lt "$end" ] && kill -0 "$pid" 2>/dev/null; do sleep 10; done
     else
       shift
-      kill -0 "$pid" 2>/dev/null && { kill -- "-$pid" 2>/dev/null; sleep 5; kill -9 -- "-$pid" 2>/dev/null; \
-        echo "== stopped $(date -u +%FT%TZ)" >> "$WORK/out/job.log"; }
+      # SIGTERM to the job's whole session (`timeout` puts its command in a process group of its
+      # own), then up to GPU_JOB_STOP_WAIT seconds (30) for it to end: `evaluate` writes its ended
+      # episodes and its speed first. Then SIGKILL to what is left.
+      kill -0 "$pid" 2>/dev/null && { pkill -TERM -s "$pid"; \
+        for _ in $(seq "${GPU_JOB_STOP_WAIT:-30}"); do pgrep -s "$pid" > /dev/null || break; sleep 1; done; \
+        pkill -KILL -s "$pid"; echo "== stopped $(date -u +%FT%TZ)" >> "$WORK/out/job.log"; }
     fi
     kill -0 "$pid" 2>/dev/null && echo "RUNNING" || echo "ENDED"
     if [ -f "$WORK/out/job.log" ]; then tail -c 6000 "$WORK/out/job.log"

@@ -265,15 +265,20 @@ def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
     whole = ev.evaluate(env, policy, dataclasses.replace(cfg, save_every_s=0.0), rollouts=rollouts)
     saves = []
 
-    def on_progress(results):
+    def on_progress(results, timing):
         saves.append(json.loads(json.dumps(results)))  # a copy, as a results file holds it
+        shares.append(timing)
         raise _LeaseEnded
+
+    shares = []
 
     with pytest.raises(_LeaseEnded):
         ev.evaluate(env, policy, cfg, rollouts=rollouts, on_progress=on_progress)
     (saved,) = saves
     ended = [r for r in saved["left_block_plate"] if r is not None]
     assert 0 < len(ended) < 3 and all(r in whole["left_block_plate"] for r in ended)
+    (share,) = shares  # the running call's speed so far, with the episodes saved
+    assert share["control_steps"] > 0 and share["episodes"] == len(ended) and share["batch_seconds"] > 0
     assert ev.evaluate(env, policy, cfg, done=saved, rollouts=rollouts) == whole
     with pytest.raises(ValueError, match="save_every_s must be >= 0"):
         ev.EvalConfig(save_every_s=-1.0)
@@ -286,7 +291,7 @@ def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
     rounds = len(asked)  # `stop` is asked before the call and after each round
     cfg0, saves = dataclasses.replace(cfg, save_every_s=0.0), []
     with pytest.raises(ev.EvaluationStopped) as stopped:
-        ev.evaluate(env, policy, cfg0, rollouts=rollouts, on_progress=lambda r: saves.append(json.loads(json.dumps(r))),
+        ev.evaluate(env, policy, cfg0, rollouts=rollouts, on_progress=lambda r, t: saves.append(json.loads(json.dumps(r))),
                     stop=lambda: (asked.append(1) or len(asked) - rounds > 0.8 * rounds))
     (saved,) = saves
     ended = [r for r in saved["left_block_plate"] if r is not None]

@@ -332,7 +332,7 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
              on_batch: Callable[[dict[str, list], dict], None] | None = None, seed: int = 0,
              devices: Sequence[jax.Device] | None = None, tasks: Collection[str] | None = None,
              rollouts: dict | None = None, store: executable_store.ExecutableStore | None = None,
-             on_progress: Callable[[dict[str, list]], None] | None = None,
+             on_progress: Callable[[dict[str, list], dict], None] | None = None,
              stop: Callable[[], bool] | None = None) -> dict[str, list]:
     """Runs every pending episode; returns task name -> per-episode records
     {"success": bool, "steps": int, "failure": str|None, "decode": {stat: total}}, the
@@ -344,10 +344,12 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
     `on_batch(results, timing)` is called after every call with everything so far; timing
     holds the call's wall-clock (compilation excluded, reported once as compile_seconds),
     its control steps (iterations of the batched loop: one batched action each), env steps
-    and the number of devices. `on_progress(results)`: within a refilled call, every
+    and the number of devices. `on_progress(results, timing)`: within a refilled call, every
     `cfg.save_every_s` seconds, everything so far with the episodes that have ended (a
     record is written once an episode ends, so a run saved this way and resumed runs only
-    the rest; each episode ends as it would in one run, its reset and keys being its own).
+    the rest; each episode ends as it would in one run, its reset and keys being its own),
+    and the running call's timing so far, as `on_batch`'s with `episodes` those ended (a run
+    killed outright keeps the speed of its last save).
     `stop()`, asked after every queue round and before every call: when it says True, the
     episodes that have ended are recorded and handed to `on_progress` (with a refilled queue),
     and `EvaluationStopped` is raised; a resumed run then runs only the rest. Asked between
@@ -382,11 +384,20 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             rec[e] = {"success": bool(out.success[i]), "steps": int(out.steps[i]), "failure": failure,
                       "decode": {k: float(v[i]) for k, v in out.totals.items()}}
 
-    def saver(chunk):
+    def saver(chunk, call_timing):
         """`each_round` for one call: every `cfg.save_every_s` seconds (0: never), and when
         `stop()` says so, the episodes of `chunk` that have ended since the last save recorded
-        and handed to `on_progress`; then, if stopping, `EvaluationStopped`."""
+        and handed to `on_progress` with the call's share so far; then, if stopping,
+        `EvaluationStopped` with that share."""
         saved, last = np.zeros(len(chunk), bool), time.perf_counter()
+
+        def share(c, out, slot_ep, ended) -> dict:
+            """`on_batch`'s timing for the call so far: its rounds, its ended episodes, and
+            the env steps of those and of the running ones."""
+            loop_steps, steps = sharding.fetch((c[0], rollout.queue_states(c).step))
+            running = np.asarray(slot_ep) < out.steps.shape[0]
+            return {**call_timing(), "control_steps": int(loop_steps), "episodes": int(ended.sum()),
+                    "env_steps": int(out.steps[:len(chunk)][ended].sum() + np.asarray(steps)[running].sum())}
 
         def each_round(c):
             nonlocal last
@@ -399,14 +410,10 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             if on_progress is not None and (ended & ~saved).any():
                 record(out, chunk, np.flatnonzero(ended & ~saved))
                 saved[ended] = True
-                on_progress(results)
+                on_progress(results, share(c, out, slot_ep, ended))
             last = time.perf_counter()
             if stopping:
-                loop_steps, steps = sharding.fetch((c[0], rollout.queue_states(c).step))
-                running = np.asarray(slot_ep) < out.steps.shape[0]
-                raise EvaluationStopped(results, {"control_steps": int(loop_steps), "episodes": int(ended.sum()),
-                                                  "env_steps": int(out.steps[:len(chunk)][ended].sum()
-                                                                   + np.asarray(steps)[running].sum())})
+                raise EvaluationStopped(results, share(c, out, slot_ep, ended))
         return each_round
 
     for chunk, inputs in calls:
@@ -420,11 +427,7 @@ def evaluate(env: TabletopEnv, policy: rollout.Policy, cfg: EvalConfig, done: di
             return {"batch_seconds": time.perf_counter() - t0 - run.last_wait,  # a wait for the tail's compile
                     "compile_seconds": 0.0 if reused else run.compile_seconds,   # counts as compile
                     "compile_split": {} if reused else run.compile_split, "devices": run.devices}
-        try:
-            out, loop_steps = run(inputs, saver(chunk) if progressing else None)
-        except EvaluationStopped as e:
-            e.timing = {**call_timing(), **e.timing}
-            raise
+        out, loop_steps = run(inputs, saver(chunk, call_timing) if progressing else None)
         timing = call_timing()
         record(out, chunk, range(len(chunk)))
         if on_batch is not None:
