@@ -134,9 +134,8 @@ def main(argv):
             out[k] = timing[k] + t[k]
         return out
 
-    def write(results, timing):
+    def write(results, timing):  # completes `timing` in place (speed, wall, host) and writes the file
         summary = ev.summarize(env.tasks, results)
-        timing = dict(timing)
         if timing["control_steps"]:
             timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / timing["control_steps"]
             timing["env_steps_per_s"] = timing["env_steps"] / timing["batch_seconds"]
