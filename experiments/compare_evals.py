@@ -1,7 +1,8 @@
 """Closed-loop success of evaluations against a baseline evaluated on the same initial states:
 per suite, the success rate, its difference from the baseline, and the paired counts (episodes
 of one initial state that succeed under the baseline only / under the other only); per
-evaluation, steps and target passes per episode, the steps its successful episodes took (mean
+evaluation, steps and target passes per episode (and the baseline's passes over its: the
+saving per episode, longer episodes included), the steps its successful episodes took (mean
 and 90th percentile: a policy that finishes tasks more slowly loses episodes to the time
 limit), the share of skipped steps and whether every suite is within --tolerance points of
 the baseline (the success guard of issue 23).
@@ -98,9 +99,10 @@ def common(results: list[dict]) -> tuple[list[dict], list[str]]:
 
 def _restricted(result: dict, episodes: dict[str, list]) -> dict:
     """`result` holding only `episodes` (task -> records, in the order to compare them): its
-    settings' task list and its summary's tasks follow."""
+    settings' task list and its summary's tasks follow (a task not started has no summary)."""
+    tasks = result["summary"]["tasks"]
     return dict(result, settings=dict(result.get("settings", {}), tasks=list(episodes)), episodes=episodes,
-                summary=dict(result["summary"], tasks={t: result["summary"]["tasks"][t] for t in episodes}))
+                summary=dict(result["summary"], tasks={t: tasks[t] for t in episodes if t in tasks}))
 
 
 def ended(results: list[dict]) -> tuple[list[dict], int]:
@@ -165,9 +167,7 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
         s["base_rate"], s["rate"] = s["base"] / s["episodes"], s["other"] / s["episodes"]
         s["diff_points"] = 100.0 * (s["rate"] - s["base_rate"])
     episodes = [e for t in eo for e in eo[t]]
-    steps = float(np.mean([e["steps"] for e in episodes]))
     success_steps = {name: _success_steps(eps) for name, eps in (("base", eb), ("other", eo))}
-    passes = [e.get("decode", {}).get("target_passes") for e in episodes]
     skipped = sum(e.get("decode", {}).get("skipped", 0.0) for e in episodes)
     return dict(
         label=label(other), suites=suites,
@@ -175,12 +175,21 @@ def compare(base: dict, other: dict, tolerance: float) -> dict:
         base_mean_rate=float(np.mean([s["base_rate"] for s in suites.values()])),
         worst_diff_points=min(s["diff_points"] for s in suites.values()),
         guard=all(s["diff_points"] >= -tolerance for s in suites.values()),
-        steps_per_episode=steps,
+        **_per_episode(eo), **{f"base_{k}": v for k, v in _per_episode(eb).items()},
         success_steps=success_steps["other"], base_success_steps=success_steps["base"],
-        target_passes_per_episode=float(np.mean(passes)) if all(p is not None for p in passes) else None,
         skipped_share=skipped / sum(e["steps"] for e in episodes),
         base_only=sum(s["base_only"] for s in suites.values()),
         other_only=sum(s["other_only"] for s in suites.values()))
+
+
+def _per_episode(episodes: dict) -> dict:
+    """Mean steps and target passes per episode (passes None where a record has none): the
+    passes are what an episode waits for, so their ratio to the baseline's is the saving a
+    method makes per episode, its longer or shorter episodes included."""
+    eps = [e for recs in episodes.values() for e in recs]
+    passes = [e.get("decode", {}).get("target_passes") for e in eps]
+    return dict(steps_per_episode=float(np.mean([e["steps"] for e in eps])),
+                target_passes_per_episode=float(np.mean(passes)) if all(p is not None for p in passes) else None)
 
 
 def _success_steps(episodes: dict) -> dict | None:
@@ -195,17 +204,22 @@ def _steps_text(s: dict | None) -> str:
 
 def table(base: dict, rows: list[dict], tolerance: float) -> str:
     suites = list(rows[0]["suites"]) if rows else []
-    head = "| evaluation | " + " | ".join(suites) + " | mean | steps / ep | steps / success (p90) | passes / ep | " \
-           f"skipped | base-only / other-only | within {tolerance:g} pts |"
+    head = "| evaluation | " + " | ".join(suites) + " | mean | steps / ep | steps / success (p90) | " \
+           f"passes / ep (baseline's / its) | skipped | base-only / other-only | within {tolerance:g} pts |"
     lines = [head, "|" + "---|" * (len(suites) + 8)]
     if rows:
         r0 = rows[0]
+        base_passes = r0["base_target_passes_per_episode"]
         lines.append(f"| {label(base)} (baseline) | " + " | ".join(f"{100 * r0['suites'][s]['base_rate']:.1f}%"
                                                                    for s in suites)
-                     + f" | {100 * r0['base_mean_rate']:.2f}% | | {_steps_text(r0['base_success_steps'])} | | | | |")
+                     + f" | {100 * r0['base_mean_rate']:.2f}% | {r0['base_steps_per_episode']:.1f} | "
+                       f"{_steps_text(r0['base_success_steps'])} | {'-' if base_passes is None else f'{base_passes:.0f}'}"
+                       " | | | |")
     for r in rows:
         cells = " | ".join(f"{100 * r['suites'][s]['rate']:.1f}% ({r['suites'][s]['diff_points']:+.1f})" for s in suites)
-        passes = "-" if r["target_passes_per_episode"] is None else f"{r['target_passes_per_episode']:.0f}"
+        passes, base_passes = r["target_passes_per_episode"], r["base_target_passes_per_episode"]
+        passes = "-" if passes is None else f"{passes:.0f}" + (
+            f" ({base_passes / passes:.2f}x)" if base_passes is not None and passes > 0 else "")
         lines.append(f"| {r['label']} | {cells} | {100 * r['mean_rate']:.2f}% | {r['steps_per_episode']:.1f} | "
                      f"{_steps_text(r['success_steps'])} | {passes} | {100 * r['skipped_share']:.0f}% | "
                      f"{r['base_only']} / {r['other_only']} | {'yes' if r['guard'] else 'no'} "

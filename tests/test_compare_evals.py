@@ -8,8 +8,8 @@ import pytest
 from experiments import cli, compare_evals
 
 
-def result(method, successes: dict[str, list[bool]], suite_of: dict[str, str], skipped=0.0):
-    episodes = {t: [dict(success=s, steps=10, decode=dict(target_passes=7.0, skipped=skipped)) for s in ss]
+def result(method, successes: dict[str, list[bool]], suite_of: dict[str, str], skipped=0.0, passes=70.0):
+    episodes = {t: [dict(success=s, steps=10, decode=dict(target_passes=passes, skipped=skipped)) for s in ss]
                 for t, ss in successes.items()}
     return dict(settings=dict(method=method, tasks=list(successes)), episodes=episodes,
                 summary=dict(tasks={t: dict(suite=suite_of[t]) for t in successes}))
@@ -21,13 +21,15 @@ BASE = result("ar", {"a": [True, True, False, True], "b": [True] * 4, "c": [True
 
 def test_paired_counts_rates_and_guard():
     other = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]},
-                   SUITE_OF, skipped=2.0)
+                   SUITE_OF, skipped=2.0, passes=28.0)
     r = compare_evals.compare(BASE, other, tolerance=2.0)
     sp, lo = r["suites"]["spatial"], r["suites"]["long"]
     assert (sp["base_only"], sp["other_only"], sp["rate"], sp["base_rate"]) == (1, 1, 7 / 8, 7 / 8)
     assert (lo["base_only"], lo["other_only"], lo["diff_points"]) == (1, 0, -25.0)
     assert (r["base_only"], r["other_only"], r["guard"], r["worst_diff_points"]) == (2, 1, False, -25.0)
-    assert r["skipped_share"] == pytest.approx(0.2) and r["target_passes_per_episode"] == 7.0
+    assert r["skipped_share"] == pytest.approx(0.2)
+    assert (r["target_passes_per_episode"], r["base_target_passes_per_episode"]) == (28.0, 70.0)
+    assert "| 28 (2.50x) |" in compare_evals.table(BASE, [r], 2.0)  # the saving per episode
     assert list(r["suites"]) == ["spatial", "long"]  # the evaluation's order
     assert compare_evals.compare(BASE, other, tolerance=25.0)["guard"]
 
@@ -127,7 +129,7 @@ def test_ended_only_compares_the_episodes_every_evaluation_has_ended():
     """A run cut mid-queue compares on the initial states it has ended, paired as in the whole run."""
     cut = result("heisd", {"a": [True, False, True, True], "b": [True] * 4, "c": [False, False, True, True]}, SUITE_OF)
     cut["episodes"]["a"][1] = cut["episodes"]["c"][0] = None
-    del cut["episodes"]["b"]  # not started: its settings name it, its file holds nothing of it
+    del cut["episodes"]["b"], cut["summary"]["tasks"]["b"]  # not started: only its settings name it
     cut["settings"]["episodes_per_task"] = 4
     cut = compare_evals.with_unstarted(cut)
     assert cut["episodes"]["b"] == [None] * 4
@@ -138,6 +140,8 @@ def test_ended_only_compares_the_episodes_every_evaluation_has_ended():
     assert r["suites"]["spatial"]["episodes"] == 3 and r["suites"]["long"]["base_only"] == 0
     with pytest.raises(ValueError, match="not run yet"):
         compare_evals.compare(BASE, cut, 2.0)
+    (base2, other2), _ = compare_evals.ended(compare_evals.common([BASE, cut])[0])  # both flags
+    assert (base2, other2) == (base, other)
     assert compare_evals.ended([BASE, BASE]) == ([BASE, BASE], 0)
     with pytest.raises(ValueError, match="not paired.*--common_tasks"):  # a task one of them lacks
         compare_evals.ended([BASE, result("heisd", {"a": [True] * 4}, SUITE_OF)])
