@@ -89,6 +89,7 @@ def main(argv):
     settings["contents"] = cli.contents(methods.get(FLAGS.method).loads)
     try:
         done = results_io.load_resumable(FLAGS.out, settings)
+        earlier = results_io.earlier_runs(FLAGS.out) if done else []  # the speeds of the runs it resumes
         env = TabletopEnv(task_list, dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint),
                                                          physics=env_physics))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
@@ -115,7 +116,8 @@ def main(argv):
     # time splits into compile (the rollout's, tracing included), run (the batches: device
     # work and fetching results) and host (the rest: imports, loading, setup, writing results).
     timing = {"device": str(jax.devices()[0].device_kind), "num_envs": cfg.num_envs, "tail_envs": cfg.tail_envs,
-              "batches": 0, "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0}
+              "batches": 0, "batch_seconds": 0.0, "control_steps": 0, "env_steps": 0, "compile_seconds": 0.0,
+              **({"earlier": earlier} if earlier else {})}
 
     table = policy.meta.get("cost_table")
     if table is not None:
@@ -143,6 +145,8 @@ def main(argv):
         timing["host_seconds"] = timing["wall_seconds"] - timing["compile_seconds"] - timing["batch_seconds"]
         timing["host_split"] = {**host_phases.seconds,
                                 "other": timing["host_seconds"] - sum(host_phases.seconds.values())}
+        if earlier:  # this run and the ones it resumed, summed
+            timing["all_runs"] = results_io.all_runs([*earlier, timing])
         results_io.write_json_atomic(FLAGS.out, {"settings": settings, "numerics": methods.numerics_ran(policy),
                                                  "episodes": results, "summary": summary,
                                                  "timing": timing, **as_ar, **made})
@@ -190,6 +194,10 @@ def main(argv):
     if timing["control_steps"]:
         print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
               f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
+    if earlier and timing["all_runs"]["control_steps"]:
+        a = timing["all_runs"]
+        print(f"all {a['runs']} runs of this file: {a['ms_per_control_step']:.1f} ms per control step over "
+              f"{a['control_steps']} control steps, {a['wall_seconds']:.0f}s wall")
     host = timing["host_split"]
     print(split_text(timing["wall_seconds"], {"compile": timing["compile_seconds"], "run": timing["batch_seconds"],
                                               "host": timing["host_seconds"]},

@@ -83,6 +83,30 @@ def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
     return data.get("episodes", {})
 
 
+def earlier_runs(path: str | os.PathLike) -> list[dict]:
+    """The timings of the runs that wrote the results file at `path`, oldest first: its
+    `timing.earlier` and then its own `timing` (a run resumed over it keeps them, so a file
+    written over several leases keeps every run's speed). [] where there is no file or no
+    timing."""
+    if not Path(path).exists():
+        return []
+    data = read_json(path)
+    t = data.get("timing") if isinstance(data, dict) else None
+    if not isinstance(t, dict):
+        return []
+    return [*t.get("earlier", []), {k: v for k, v in t.items() if k not in ("earlier", "all_runs")}]
+
+
+def all_runs(timings: list[dict]) -> dict:
+    """The runs' timings summed: control steps, batch, compile and wall seconds, env steps,
+    and the ms per control step over all of them."""
+    out = {"runs": len(timings), **{k: sum(t.get(k, 0) for t in timings) for k in (
+        "control_steps", "env_steps", "batch_seconds", "compile_seconds", "wall_seconds")}}
+    if out["control_steps"]:
+        out["ms_per_control_step"] = 1e3 * out["batch_seconds"] / out["control_steps"]
+    return out
+
+
 # --- sweeps: one JSON line per finished cell ----------------------------------------------
 
 SWEEP_FORMAT = "heisd-jax-sweep-v1"

@@ -71,7 +71,13 @@ def test_ar_evaluation_writes_a_well_formed_result_file_and_resumes(tiny_ckpt, t
     before = out.read_text()
     stdout = _run_main(argv)  # same settings: nothing left to run, the file keeps its episodes
     assert "0 to run" in stdout
-    assert json.loads(out.read_text())["episodes"] == json.loads(before)["episodes"]
+    again = json.loads(out.read_text())
+    assert again["episodes"] == json.loads(before)["episodes"]
+    # ... and the speed of the run it resumed, summed with its own (which ran nothing)
+    (first,) = again["timing"]["earlier"]
+    assert first["control_steps"] == res["timing"]["control_steps"] and again["timing"]["control_steps"] == 0
+    assert again["timing"]["all_runs"]["runs"] == 2 and again["timing"]["all_runs"]["ms_per_control_step"] == (
+        pytest.approx(res["timing"]["ms_per_control_step"]))
 
 
 def test_shipped_checkpoint_loads_in_one_call_and_fits_the_size_limits():
