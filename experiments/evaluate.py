@@ -88,8 +88,9 @@ def main(argv):
             settings[name] = os.path.abspath(paths[name])
     settings["contents"] = cli.contents(methods.get(FLAGS.method).loads)
     try:
-        done = results_io.load_resumable(FLAGS.out, settings)
-        earlier = results_io.earlier_runs(FLAGS.out) if done else []  # the speeds of the runs it resumes
+        previous = results_io.read_resumable(FLAGS.out, settings)
+        done = previous.get("episodes", {})
+        earlier = results_io.earlier_runs(previous) if done else []  # the speeds of the runs it resumes
         env = TabletopEnv(task_list, dataclasses.replace(methods.env_config(FLAGS.method, FLAGS.checkpoint),
                                                          physics=env_physics))
         policy = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,

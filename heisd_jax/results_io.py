@@ -67,6 +67,12 @@ def run_identity(settings: dict) -> dict:
 def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
     """Per-episode results of an earlier run of the same `settings` (`run_identity`), or {}
     if none. Raises ValueError if the file holds a run with other settings or is not ours."""
+    return read_resumable(path, settings).get("episodes", {})
+
+
+def read_resumable(path: str | os.PathLike, settings: dict) -> dict:
+    """The whole results file of an earlier run of the same `settings`, or {} if none; the
+    errors of `load_resumable`."""
     path = Path(path)
     if not path.exists():
         return {}
@@ -80,18 +86,14 @@ def load_resumable(path: str | os.PathLike, settings: dict) -> dict:
             f"{path} holds results of other settings ({data.get('settings') if isinstance(data, dict) else '?'}); "
             f"refusing to overwrite it: choose another --out"
         )
-    return data.get("episodes", {})
+    return data
 
 
-def earlier_runs(path: str | os.PathLike) -> list[dict]:
-    """The timings of the runs that wrote the results file at `path`, oldest first: its
-    `timing.earlier` and then its own `timing` (a run resumed over it keeps them, so a file
-    written over several leases keeps every run's speed). [] where there is no file or no
-    timing."""
-    if not Path(path).exists():
-        return []
-    data = read_json(path)
-    t = data.get("timing") if isinstance(data, dict) else None
+def earlier_runs(data: dict) -> list[dict]:
+    """The timings of the runs that wrote a results file (`read_resumable`'s `data`), oldest
+    first: its `timing.earlier` and then its own `timing` (a run resumed over it keeps them,
+    so a file written over several leases keeps every run's speed). [] where it has none."""
+    t = data.get("timing")
     if not isinstance(t, dict):
         return []
     return [*t.get("earlier", []), {k: v for k, v in t.items() if k not in ("earlier", "all_runs")}]
