@@ -29,7 +29,7 @@ import jax
 from heisd_jax import results_io, sharding
 from heisd_jax.harness import evaluator as ev, methods
 from heisd_jax.timing import Phases, split_text
-from experiments import cli, method_flags
+from experiments import cli, eval_report, method_flags
 
 FLAGS = flags.FLAGS
 cli.define_cost_flags()
@@ -104,7 +104,7 @@ def main(argv):
     if FLAGS.compile_only:
         split = ev.compile_rollout(env, policy, cfg, done, store=store)
         print(f"{FLAGS.method}: {n_todo} episodes pending, {cfg.num_envs} envs: " +
-              (f"compiled in {_compile_text(split)}" if split else "nothing to compile"))
+              (f"compiled in {eval_report.compile_text(split)}" if split else "nothing to compile"))
         print(split_text(time.perf_counter() - T_START, {}, label="wall"))
         return
     print(f"{FLAGS.method}: {len(task_list)} tasks x {cfg.episodes_per_task} episodes, {n_todo} to run, {cfg.num_envs} envs in parallel")
@@ -137,7 +137,7 @@ def main(argv):
             out[k] = timing[k] + t[k]
         return out
 
-    def write(results, timing):  # completes `timing` in place (speed, wall, host) and writes the file
+    def write(results, timing):  # completes `timing` in place (speed, wall, host), writes the file, returns its data
         summary = ev.summarize(env.tasks, results)
         if timing["control_steps"]:
             timing["ms_per_control_step"] = 1e3 * timing["batch_seconds"] / timing["control_steps"]
@@ -148,15 +148,15 @@ def main(argv):
                                 "other": timing["host_seconds"] - sum(host_phases.seconds.values())}
         if earlier:  # this run and the ones it resumed, summed
             timing["all_runs"] = results_io.all_runs([*earlier, timing])
-        results_io.write_json_atomic(FLAGS.out, {"settings": settings, "numerics": methods.numerics_ran(policy),
-                                                 "episodes": results, "summary": summary,
-                                                 "timing": timing, **as_ar, **made})
-        return summary
+        data = {"settings": settings, "numerics": methods.numerics_ran(policy), "episodes": results,
+                "summary": summary, "timing": timing, **as_ar, **made}
+        results_io.write_json_atomic(FLAGS.out, data)
+        return data
 
     def on_batch(results, t):
         progress["episodes"] += t["episodes"]
         timing.update(folded(t))
-        summary = write(results, timing)
+        summary = write(results, timing)["summary"]
         succ = sum(s["successes"] for s in summary["suites"].values())
         print(f"  {progress['episodes']}/{n_total} episodes, success so far {succ / max(progress['episodes'], 1):.3f}, "
               f"batch {t['batch_seconds']:.1f}s ({1e3 * t['batch_seconds'] / max(t['control_steps'], 1):.1f} ms per "
@@ -164,7 +164,7 @@ def main(argv):
               f"elapsed {time.perf_counter() - t_start:.0f}s", flush=True)
 
     def on_progress(results, t):  # the running call's share so far, marked as such
-        summary = write(results, {**folded(t), "running": True})
+        summary = write(results, {**folded(t), "running": True})["summary"]
         ended = sum(s["episodes"] for s in summary["suites"].values())
         print(f"  {ended}/{n_total} episodes ended (saved), success so far "
               f"{sum(s['successes'] for s in summary['suites'].values()) / max(ended, 1):.3f}, "
@@ -184,56 +184,7 @@ def main(argv):
         print(f"stopped: {ended}/{n_total} episodes in {os.path.abspath(FLAGS.out)}; the same command runs the rest",
               flush=True)
         stop.exit()
-    summary = write(results, timing)
-    print(f"\n{'suite':<10}{'episodes':>10}{'success':>10}{'steps/ep':>10}{'passes/act':>12}{'accept len':>12}"
-          f"{'passes/ep':>11}")
-    for name, s in summary["suites"].items():
-        cols = [s.get(k) for k in ("target_passes_per_action", "tokens_per_target_pass", "target_passes_per_episode")]
-        passes, al, per_ep = ("-" if v is None else f"{v:.{d}f}" for v, d in zip(cols, (2, 2, 0)))
-        print(f"{name:<10}{s['episodes']:>10}{s['success_rate']:>10.3f}{s['mean_steps']:>10.1f}{passes:>12}{al:>12}"
-              f"{per_ep:>11}")
-    if timing["control_steps"]:
-        print(f"{timing['ms_per_control_step']:.1f} ms per control step ({cfg.num_envs} envs: decode + physics"
-              f"{' + camera' if env.config.render else ''}), compile {timing['compile_seconds']:.0f}s")
-    if earlier and timing["all_runs"]["control_steps"]:
-        a = timing["all_runs"]
-        print(f"all {a['runs']} runs of this file: {a['ms_per_control_step']:.1f} ms per control step over "
-              f"{a['control_steps']} control steps, {a['wall_seconds']:.0f}s wall")
-    host = timing["host_split"]
-    print(split_text(timing["wall_seconds"], {"compile": timing["compile_seconds"], "run": timing["batch_seconds"],
-                                              "host": timing["host_seconds"]},
-                     notes={"host": f"start {host['start']:.1f}s, env and policy {host['setup']:.1f}s, "
-                                    f"other {host['other']:.1f}s"}, label="wall"))
-    if timing.get("compile_split"):
-        print(f"compile: {_compile_text({**timing['compile_split'], 'total': timing['compile_seconds']})}")
-    print(f"results: {os.path.abspath(FLAGS.out)}")
-
-
-def _compile_text(split: dict[str, float]) -> str:
-    """The compile's seconds as words: a static batch's one program, or a queue's programs
-    (`{program}_{stage}` keys; their XLA compiles overlap, so they add up to more than the total)."""
-    def stages(pre: str) -> str:
-        if f"{pre}store" in split and not split[f"{pre}trace"]:
-            return f"loaded from the executable store in {split[f'{pre}store']:.1f}s (no tracing, lowering or XLA)"
-        return (f"trace {split[f'{pre}trace']:.1f}s + lower {split[f'{pre}lower']:.1f}s + XLA "
-                f"{split[f'{pre}xla']:.1f}s (or its load from the compilation cache)" +
-                (f" + store {split[f'{pre}store']:.1f}s (keying and saving)" if f"{pre}store" in split else ""))
-
-    def programs(tail: bool) -> list[str]:
-        return [k[:-len("_trace")] for k in split if k.endswith("_trace") and k.startswith("tail_") == tail]
-
-    if "trace" in split:
-        return f"{split['total']:.1f}s: {stages('')}"
-    parts = programs(False)
-    total = {s: sum(split.get(f"{p}_{s}", 0.0) for p in parts) for s in ("trace", "lower", "xla")}
-    text = (f"{split['total']:.1f}s wall for {len(parts)} programs, their XLA side by side (trace "
-            f"{total['trace']:.1f}s + lower {total['lower']:.1f}s in turn, XLA {total['xla']:.1f}s in all): "
-            + "; ".join(f"{p}: {stages(p + '_')}" for p in parts))
-    if programs(True):
-        text += ("; the tail's programs, beside the head's run: " +
-                 "; ".join(f"{p}: {stages(p + '_')}" for p in programs(True)) +
-                 f"; waited for {split.get('tail_wait', 0.0):.1f}s")
-    return text
+    print(eval_report.final_report(write(results, timing), camera=env.config.render, out=os.path.abspath(FLAGS.out)))
 
 
 if __name__ == "__main__":
