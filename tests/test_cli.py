@@ -46,6 +46,8 @@ CASES = [
     ("studies.invariant_tiles", ["--tiles=64x48x32"], "n=48: must be a power of two >= 16"),
     ("studies.trace_decode", ["--functions=prefill,prefil"], "--functions ['prefil']: valid are ['ar', 'prefill'"),
     ("studies.expert_gain", ["--gains=1.2,0"], "--gains must be > 0"),
+    ("studies.failure_modes", ["--method=ar", "--top_k=4"], "--method=ar takes none of --top_k"),
+    ("studies.failure_modes", ["--suites=spatial", "--tasks=nope"], "unknown task(s) ['nope'] in suite(s) ['spatial']"),
     ("studies.budget_replay", ["--tables=experiments/results/costs/cost_table_bf16_target_b16_h200.json"],
      "prices batch 16: the replay is at batch 1"),
     ("studies.budget_replay", ["--settings=target_scale=llama2-7b,top_k=3"],

@@ -3,13 +3,18 @@ phase of the task the state is in.
 
   python -m experiments.studies.failure_modes --suites=all --episodes=10 --num_envs=400 \
       --out=results/failure_modes.json
+  python -m experiments.studies.failure_modes --method=heisd --budget=fixed --continuation=ar \
+      --suites=spatial --tasks=left_block_plate --episodes=30 --num_envs=10 --out=...
 
-Runs the target (greedy AR) on the fixed evaluation initial states while the scripted expert,
+Runs a decoding method (default the target's greedy AR; any VLA method with its settings as
+flags, as `experiments.evaluate` takes them) on the fixed evaluation initial states while the scripted expert,
 acting alongside without control (DAgger's teacher at beta 0), labels each visited state with
 its action and its phase (approach, descend, grasp, ...). Reports, per phase: the share of
 steps, the mean absolute bin error between the policy's action and the expert's per action
 dimension, and for the failed episodes the phase they ended in and whether the arm had
-stopped moving (mean TCP speed over the last 20 steps under 1 cm/s).
+stopped moving (mean TCP speed over the last 20 steps under 1 cm/s). For a method that
+skips verification (verify-skip), each episode's share of skipped steps, over the whole
+episode and over its last 20 steps, and the traces mark the skipped steps.
 """
 
 from __future__ import annotations
@@ -29,11 +34,15 @@ from envs.env import TabletopEnv
 from heisd_jax import results_io
 from heisd_jax.harness import methods
 from heisd_jax.tokenizer import ACTION_DIM
-from experiments import cli
+from experiments import cli, method_flags
 
 FLAGS = flags.FLAGS
-cli.define_paths("checkpoint")
+flags.DEFINE_enum("method", "ar", list(methods.DECODING_METHODS), "Decoding method (a VLA policy) to run.")
+cli.define_paths("checkpoint", "drafter", "datastore")
+for _name in method_flags.define():  # --top_k, --budget, ...: the VLA methods' settings
+    flags.declare_key_flag(_name)
 flags.DEFINE_string("suites", "all", f"Comma-separated suites of {list(tasks_lib.SUITES)}, or 'all'.")
+flags.DEFINE_list("tasks", [], "Only these task names (default: every task of the suites).")
 flags.DEFINE_integer("episodes", 10, "Evaluation initial states per task (0..49).")
 flags.DEFINE_integer("num_envs", 400, "Episodes run in parallel.")
 flags.DEFINE_integer("traces", 10, "Failed episodes whose step-by-step trace (every 5th step) goes into --out.")
@@ -50,11 +59,13 @@ def main(argv):
         raise app.UsageError(f"--episodes must be in 1..{tasks_lib.N_EVAL_INIT_STATES}, got {FLAGS.episodes}")
     if FLAGS.num_envs < 1:
         raise app.UsageError("--num_envs must be >= 1")
+    kwargs = method_flags.given(FLAGS.method)
     try:
-        task_list = tasks_lib.get_tasks(FLAGS.suites)
-        env = TabletopEnv(task_list, methods.env_config("ar", FLAGS.checkpoint))
-        learner = methods.make_policy("ar", env, checkpoint=FLAGS.checkpoint)
-    except ValueError as e:
+        task_list = tasks_lib.get_tasks(FLAGS.suites, FLAGS.tasks or None)
+        env = TabletopEnv(task_list, methods.env_config(FLAGS.method, FLAGS.checkpoint))
+        learner = methods.make_policy(FLAGS.method, env, checkpoint=FLAGS.checkpoint, drafter=FLAGS.drafter,
+                                      datastore=FLAGS.datastore, batch_size=FLAGS.num_envs, **kwargs)
+    except (ValueError, FileNotFoundError) as e:
         raise app.UsageError(str(e)) from e
     teacher = expert.observer(env)
     n_steps = int(max(t.max_steps for t in task_list))
@@ -78,7 +89,9 @@ def main(argv):
         print(f"{len(rows)}/{len(pairs)} episodes, {time.perf_counter() - t0:.0f}s", flush=True)
     summary = _report(rows)
     if FLAGS.out:
-        results_io.write_json_atomic(FLAGS.out, dict(settings=dict(checkpoint=FLAGS.checkpoint, suites=FLAGS.suites,
+        results_io.write_json_atomic(FLAGS.out, dict(settings=dict(method=FLAGS.method, **kwargs,
+                                                                   checkpoint=FLAGS.checkpoint, suites=FLAGS.suites,
+                                                                   tasks=[t.name for t in task_list],
                                                                    episodes=FLAGS.episodes),
                                                      summary=summary, episodes=rows))
         print(f"-> {FLAGS.out}")
@@ -97,16 +110,20 @@ def _summarise(final, traj):
     speed = jnp.linalg.norm(traj["ee_vel"], axis=-1)  # [T, B]
     t = jnp.arange(speed.shape[0])[:, None]
     window = running & (t > last[None, :] - STUCK_WINDOW)
+    skipped = traj["stats"].get("skipped", jnp.zeros_like(speed)) * running  # [T, B], 0 without verify-skip
     return dict(
         success=final.success, steps=final.step,
         final_phase=take(phase), final_goal=take(goal),
         final_speed=jnp.sum(speed * window, 0) / jnp.maximum(jnp.sum(window, 0), 1),
+        skipped=jnp.sum(skipped, 0) / jnp.maximum(jnp.sum(running, 0), 1),
+        final_skipped=jnp.sum(skipped * window, 0) / jnp.maximum(jnp.sum(window, 0), 1),
         phase_steps=jnp.sum(onehot, 0),  # [B, P]
         phase_err=jnp.einsum("tbp,tbd->bpd", onehot, err),  # [B, P, 7] summed bin error
         # Per-step trace (every 5th step): phase, TCP position and jaw (proprio), the policy's
         # action and the expert's, to read a failed episode step by step.
         trace_phase=phase[::5].T, trace_proprio=traj["proprio"][::5].transpose(1, 0, 2),
         trace_policy=traj["policy_action"][::5].transpose(1, 0, 2), trace_expert=traj["action"][::5].transpose(1, 0, 2),
+        trace_skipped=skipped[::5].T,
     )
 
 
@@ -135,6 +152,14 @@ def _report(rows):
     print(f"failed episodes ({int(fail.sum())}) by (goal, phase at the end, arm stopped):")
     for (g, ph, stuck), c in ends.most_common():
         print(f"  goal {g} {ph:<14} {'stopped' if stuck else 'moving':<8} {c}")
+    skip = np.array([r["skipped"] for r in rows])
+    if skip.any():  # a method with verify-skip: do the failed episodes repeat actions unverified more?
+        print(f"skipped steps: {skip[~fail].mean():.1%} of the successful episodes' steps; failed episodes "
+              "(task, state, steps, skipped, skipped in the last 20 steps, TCP speed there):")
+        for r in rows:
+            if not r["success"]:
+                print(f"  {r['task']} {r['episode']}: {r['steps']} steps, {r['skipped']:.0%}, {r['final_skipped']:.0%}, "
+                      f"{100 * r['final_speed']:.1f} cm/s, ended in {names[r['final_phase']]}")
     return dict(success={s: float(np.mean(v)) for s, v in by_suite.items()}, phases=phase_rows,
                 failure_ends=[dict(goal=int(g), phase=ph, stopped=bool(s), count=c) for (g, ph, s), c in ends.items()],
                 action_dims=ACTION_DIM)
