@@ -154,7 +154,8 @@ def _report(rows):
         print(f"  goal {g} {ph:<14} {'stopped' if stuck else 'moving':<8} {c}")
     skip = np.array([r["skipped"] for r in rows])
     if skip.any():  # a method with verify-skip: do the failed episodes repeat actions unverified more?
-        print(f"skipped steps: {skip[~fail].mean():.1%} of the successful episodes' steps; failed episodes "
+        ok = f"{skip[~fail].mean():.1%}" if (~fail).any() else "none"
+        print(f"skipped steps: {ok} of the successful episodes' steps; failed episodes "
               "(task, state, steps, skipped, skipped in the last 20 steps, TCP speed there):")
         for r in rows:
             if not r["success"]:
