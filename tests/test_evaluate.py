@@ -244,30 +244,35 @@ def test_a_seed_given_as_data_folds_the_keys_as_a_static_one():
     np.testing.assert_array_equal(rollout.seeded_keys(keys, 0), keys)  # seed 0: the historical keys
 
 
-def test_a_deterministic_rollout_is_a_program_of_its_own_that_plays_the_same_episodes():
+@pytest.fixture(scope="module")
+def expert_queue():
+    """The expert on one task, 3 episodes in 2 slots (a queue), and the compiled rollouts the
+    tests below share: (env, policy, config, rollouts)."""
+    env = TabletopEnv(tasks_lib.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
+    return env, methods.make_policy("expert", env), ev.EvalConfig(episodes_per_task=3, num_envs=2), {}
+
+
+def test_a_deterministic_rollout_is_a_program_of_its_own_that_plays_the_same_episodes(expert_queue):
     """`EvalConfig.deterministic` compiles the rollout with `xla_options.DETERMINISTIC` (a GPU's
     atomics made deterministic; a CPU is so already, so the episodes are the same here), as a
     program of its own: a caller's compiled rollouts keep both apart."""
-    env = TabletopEnv(tasks_lib.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
-    policy = methods.make_policy("expert", env)
-    rollouts = {}
-    plain, det = (ev.evaluate(env, policy, ev.EvalConfig(episodes_per_task=2, num_envs=2, deterministic=d),
-                              rollouts=rollouts) for d in (False, True))
-    assert plain == det and len(plain["left_block_plate"]) == 2 and len(rollouts) == 2
+    env, policy, cfg, rollouts = expert_queue
+    plain = ev.evaluate(env, policy, cfg, rollouts=rollouts)
+    programs = len(rollouts)
+    det = ev.evaluate(env, policy, dataclasses.replace(cfg, deterministic=True), rollouts=rollouts)
+    assert plain == det and len(plain["left_block_plate"]) == 3 and len(rollouts) == programs + 1
 
 
 class _LeaseEnded(Exception):
     pass
 
 
-def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run():
+def test_a_queue_saves_its_ended_episodes_and_a_resumed_run_ends_as_one_run(expert_queue):
     """Within a refilled call, `on_progress` gets the episodes that have ended (none of them
     before it ends); a run stopped after such a save (a lease that ends) and resumed from what
     it saved gives the results of one uninterrupted run."""
-    env = TabletopEnv(tasks_lib.get_tasks("spatial", ["left_block_plate"]), EnvConfig(render=False))
-    policy = methods.make_policy("expert", env)
-    cfg = ev.EvalConfig(episodes_per_task=3, num_envs=2, save_every_s=1e-9)  # a save every round
-    rollouts = {}
+    env, policy, cfg, rollouts = expert_queue
+    cfg = dataclasses.replace(cfg, save_every_s=1e-9)  # a save every round
     whole = ev.evaluate(env, policy, dataclasses.replace(cfg, save_every_s=0.0), rollouts=rollouts)
     saves = []
 
