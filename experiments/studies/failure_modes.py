@@ -107,6 +107,7 @@ def _summarise(final, traj):
     err = jnp.abs(traj["policy_action"] - traj["action"]) * 127.5  # bins, [T, B, 7]
     last = jnp.maximum(final.step - 1, 0)  # index of the last running step, [B]
     take = lambda x: jnp.take_along_axis(x, last[None, :], axis=0)[0]  # noqa: E731
+    mean_over = lambda x, mask: jnp.sum(x * mask, 0) / jnp.maximum(jnp.sum(mask, 0), 1)  # noqa: E731  [B]
     speed = jnp.linalg.norm(traj["ee_vel"], axis=-1)  # [T, B]
     t = jnp.arange(speed.shape[0])[:, None]
     window = running & (t > last[None, :] - STUCK_WINDOW)
@@ -114,9 +115,9 @@ def _summarise(final, traj):
     return dict(
         success=final.success, steps=final.step,
         final_phase=take(phase), final_goal=take(goal),
-        final_speed=jnp.sum(speed * window, 0) / jnp.maximum(jnp.sum(window, 0), 1),
-        skipped=jnp.sum(skipped, 0) / jnp.maximum(jnp.sum(running, 0), 1),
-        final_skipped=jnp.sum(skipped * window, 0) / jnp.maximum(jnp.sum(window, 0), 1),
+        final_speed=mean_over(speed, window),
+        skipped=mean_over(skipped, running),
+        final_skipped=mean_over(skipped, window),
         phase_steps=jnp.sum(onehot, 0),  # [B, P]
         phase_err=jnp.einsum("tbp,tbd->bpd", onehot, err),  # [B, P, 7] summed bin error
         # Per-step trace (every 5th step): phase, TCP position and jaw (proprio), the policy's
