@@ -86,14 +86,39 @@ class SkipConfig:
     # smaller k_skip bounded the error as well for the same share of skips (docs/method.md),
     # hence off by default.
     max_metric: float = math.inf
+    # Source "recent": a verified step also counts as a repeat (towards n_confirm) when the
+    # target's action is within these sequence-wise bounds of the last one (seq_relaxed's rule,
+    # read from the same verification pass), even where a tighter acceptance executed the
+    # target's own action instead. Tight r_max / r_seq keep the executed actions on the
+    # target's, which relaxed acceptance slows down (docs/method.md), while the skip still
+    # fires wherever the motion repeats loosely. None (both): a repeat is an executed action
+    # equal to the last one.
+    repeat_r_max: int | None = None
+    repeat_r_seq: int | None = None
 
     def __post_init__(self):
         if self.source not in SKIP_SOURCES:
             raise ValueError(f"unknown skip source {self.source!r}; valid: {', '.join(SKIP_SOURCES)}")
+        if (self.repeat_r_max is None) != (self.repeat_r_seq is None):
+            raise ValueError(f"give both repeat_r_max and repeat_r_seq or neither, got {self.repeat_r_max}, "
+                             f"{self.repeat_r_seq}")
+        if self.repeat_r_max is not None:
+            if self.source != "recent":
+                raise ValueError("repeat_r_max / repeat_r_seq bound what counts as a repeat of the last action: "
+                                 "they need skip source 'recent'")
+            if not 0 <= self.repeat_r_max < N_BINS or self.repeat_r_seq < 0:
+                raise ValueError(f"need 0 <= repeat_r_max < {N_BINS} and repeat_r_seq >= 0, got "
+                                 f"{self.repeat_r_max}, {self.repeat_r_seq}")
         if self.eps < 0 or self.r_agree < 0 or self.n_agree < 1 or self.n_confirm < 1 or self.k_skip < 0 \
                 or not self.max_metric >= 0:
             raise ValueError(f"need eps >= 0, r_agree >= 0, n_agree >= 1, n_confirm >= 1, k_skip >= 0, "
                              f"max_metric >= 0: {self}")
+
+
+def repeat_bounds(cfg: SkipConfig) -> SeqRelaxedConfig | None:
+    """The bounds within which a verified step's target action repeats the last action (None:
+    only an executed action equal to it counts)."""
+    return None if cfg.repeat_r_max is None else SeqRelaxedConfig(cfg.repeat_r_max, cfg.repeat_r_seq)
 
 
 def may_skip(cfg: SkipConfig, in_retrieval: jnp.ndarray, dist: jnp.ndarray, cand_bins: jnp.ndarray,

@@ -161,7 +161,7 @@ def candidate_block(cand: jnp.ndarray):
 
 
 STAT_KEYS = ("target_passes", "drafter_passes", "rounds", "tokens", "retrieval_verified", "retrieval_accepted",
-             "retrieval_whole", "skipped")
+             "retrieval_whole", "skipped", "last_within")
 
 
 @jax.tree_util.register_dataclass
@@ -181,6 +181,7 @@ class Accepted:
     bonus: jnp.ndarray  # [B, 1] the target's token after the accepted prefix
     greedy_first: jnp.ndarray  # [B] the target's first token (id)
     passes: jnp.ndarray  # [B] target passes so far (the prefill, and a separate verification)
+    last_within: jnp.ndarray  # [B] candidate 0 (the last action, skip source recent) within the skip's repeat bounds
 
 
 def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: vla.Observation, cand: jnp.ndarray,
@@ -226,11 +227,17 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
     best_target = jnp.take_along_axis(target_bins, best[:, None, None], 1)[:, 0] + first_id  # [B, 7]
     # The accepted prefix (tokens 1..acc) is kept and committed; the target's token acc+1 follows.
     bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
+    bounds = rules.repeat_bounds(hcfg.skip)
+    if bounds is None or hcfg.skip.source != "recent" or hcfg.recent_candidates == 0:
+        last_within = jnp.zeros((b,), bool)
+    else:  # the target's action, read from the last action's own chain, within the repeat bounds of it
+        last_within = cand_valid[:, 0] & verify_rows & (
+            rules.seq_relaxed_length(cand[:, 0] - first_id, target_bins[:, 0], bounds) == ACTION_DIM)
     chain = best[:, None] * c + jnp.minimum(jnp.arange(ACTION_DIM)[None], c - 1)  # block offsets of its nodes
     return Accepted(logits=logits, hidden=hidden, prompt_x=x, cache=cache,
                     committed=t.commit(cache, block_kv, chain, jnp.minimum(acc, c)),
                     block_hidden=jnp.take_along_axis(bhidden, chain[..., None], 1), best=best_cand, acc=acc,
-                    bonus=bonus, greedy_first=greedy1 + first_id, passes=passes)
+                    bonus=bonus, greedy_first=greedy1 + first_id, passes=passes, last_within=last_within)
 
 
 def continue_ar(tp, t: target_model.TargetModel, a: Accepted, skip: jnp.ndarray):
@@ -281,7 +288,8 @@ def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Obser
     the prefill); skip [B]: execute cand[:, 0] without a target pass. Returns token ids
     [B, 7] and per-row stats (STAT_KEYS): target/drafter passes, rounds, tokens, whether the
     retrieval draft was verified, its accepted length and whether it was accepted whole,
-    whether the row skipped. model: a `vla.VLAConfig` or any `target_model.TargetModel`."""
+    whether the row skipped, whether its last action was within the skip's repeat bounds of the
+    target's (`SkipConfig.repeat_r_max`). model: a `vla.VLAConfig` or any `target_model.TargetModel`."""
     t = target_model.as_target(model)
     tp, dp = params["target"], params["drafter"]
     b = cand.shape[0]
@@ -293,11 +301,12 @@ def decode(params, model: target_model.Model, hcfg: HybridConfig, obs: vla.Obser
             out, stats = continue_ar(tp, t, a, skip)
         else:
             out, stats = continue_drafter(tp, dp, t, hcfg.spec, obs, a, skip)
-        return jnp.where(skip[:, None], cand[:, 0], out), stats
+        return jnp.where(skip[:, None], cand[:, 0], out), dict(stats, last_within=a.last_within.astype(jnp.float32))
 
     def all_skipped(_):
         z = jnp.zeros((b,), jnp.float32)
-        return cand[:, 0], {"target_passes": z, "drafter_passes": z, "rounds": z, "retrieval_accepted": z}
+        return cand[:, 0], {"target_passes": z, "drafter_passes": z, "rounds": z, "retrieval_accepted": z,
+                            "last_within": z}
 
     tokens, stats = jax.lax.cond(jnp.any(~skip), with_target, all_skipped, None)
     verified = verify_rows.astype(jnp.float32)
@@ -317,7 +326,7 @@ def decode_ar(params, model: target_model.Model, obs: vla.Observation, cand: jnp
     tokens, passes = jax.lax.cond(jnp.any(~skip), with_target,
                                   lambda _: (cand[:, 0], jnp.zeros((b,), jnp.float32)), None)
     z = jnp.zeros((b,), jnp.float32)
-    return tokens, {"target_passes": passes, "drafter_passes": z, "rounds": z, "retrieval_accepted": z,
+    return tokens, {"target_passes": passes, "drafter_passes": z, "rounds": z, "retrieval_accepted": z, "last_within": z,
                     "tokens": jnp.full((b,), ACTION_DIM, jnp.float32), "retrieval_verified": z,
                     "retrieval_whole": z, "skipped": skip.astype(jnp.float32)}
 
@@ -491,8 +500,8 @@ def step(params, model: target_model.Model, hcfg: HybridConfig, key_spec: retrie
     bstate = new_budget[0] if auto else bstate
     actions = tok.to_actions(tokens)
     whole = stats["retrieval_whole"] > 0
-    if hcfg.recent_candidates:
-        repeated = state.recent_valid[:, 0] & jnp.all(tokens == state.recent[:, 0], -1)
+    if hcfg.recent_candidates:  # the executed action is the last one, or the target's is within the repeat bounds
+        repeated = (state.recent_valid[:, 0] & jnp.all(tokens == state.recent[:, 0], -1)) | (stats["last_within"] > 0)
     else:
         repeated = jnp.zeros((b,), bool)
     history = state.prev_actions

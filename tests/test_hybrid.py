@@ -204,6 +204,44 @@ def test_repeat_skip_executes_the_last_action_after_confirmed_repeats(tiny_hybri
         dataclasses.replace(hcfg, n_candidates=1, recent_candidates=0)
 
 
+def test_repeat_bounds_confirm_a_loose_repeat_while_executing_the_target_action(tiny_hybrid):
+    """SkipConfig.repeat_r_max / repeat_r_seq: with acceptance as tight as strict (r_max 0),
+    a last action one bin off the target's is not executed (the target's is), and without
+    repeat bounds that step is no repeat, so the skip waits for an exact one; with bounds of
+    2 / 6 the same step counts as a repeat and the next step skips, executing the target's
+    action again."""
+    params, obs, ar_tokens = tiny_hybrid
+    tok = ActionTokenizer(q01=(-1.0,) * 7, q99=(1.0,) * 7, vocab_size=CFG.vocab_size)
+    spec = retrieval.KeySpec(history=1)
+    kin = hybrid.Kinematics(lin_vel=jnp.zeros((B, 3)), ang_vel=jnp.zeros((B, 3)), lin_acc=jnp.zeros((B, 3)),
+                            gripper_vel=jnp.zeros((B,)))
+    last_bin = ar_tokens[:, -1] - CFG.first_action_id  # one bin off, on the gripper's side of the threshold
+    off = ar_tokens.copy()
+    off[:, -1] += np.where(np.isin(last_bin, (127, 255)), -1, 1)
+    skipped = {}
+    for bounds in ((None, None), (2, 6)):
+        hcfg = dataclasses.replace(
+            STRICT, acceptance="seq_relaxed", seq=acceptance.SeqRelaxedConfig(r_max=0, r_seq=0), n_candidates=0,
+            recent_candidates=1, continuation="ar",
+            skip=acceptance.SkipConfig(source="recent", n_confirm=1, k_skip=1, repeat_r_max=bounds[0],
+                                       repeat_r_seq=bounds[1]))
+        run = jax.jit(hybrid.step, static_argnums=(1, 2, 3, 4))
+        state = dataclasses.replace(hybrid.init_state(B, spec, hcfg), recent=jnp.asarray(off)[:, None],
+                                    recent_valid=jnp.ones((B, 1), bool))
+        rows = []
+        for _ in range(3):
+            _, tokens, state, stats = run(params, CFG, hcfg, spec, tok, state, obs, kin, jnp.arange(B))
+            np.testing.assert_array_equal(np.asarray(tokens), ar_tokens)
+            rows.append(np.asarray(stats["skipped"]))
+        skipped[bounds] = np.array(rows)
+    np.testing.assert_array_equal(skipped[(None, None)], np.array([[0, 0, 1]] * B).T)
+    np.testing.assert_array_equal(skipped[(2, 6)], np.array([[0, 1, 0]] * B).T)
+    with pytest.raises(ValueError, match="both repeat_r_max and repeat_r_seq"):
+        acceptance.SkipConfig(repeat_r_max=2)
+    with pytest.raises(ValueError, match="need skip source 'recent'"):
+        acceptance.SkipConfig(source="retrieval", repeat_r_max=2, repeat_r_seq=6)
+
+
 def test_skip_max_metric_keeps_rows_in_fine_motion_verified(tiny_hybrid):
     """SkipConfig.max_metric: rows whose kinematic metric exceeds it verify every step (same
     tokens); rows below it skip as without the bound."""

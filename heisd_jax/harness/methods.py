@@ -232,6 +232,13 @@ SETTINGS: dict[type, dict[str, Setting]] = {
         "eps": _S("skip_eps", f"Verify-skip: nearest-key squared distance under which retrieval is trusted "
                   f"({_CALIBRATED})."),
         "r_agree": _S("r_agree", "Verify-skip: the top candidates agree within this many bins."),
+        "repeat_r_max": _S("repeat_r_max", "Verify-skip from recent actions: a verified step also counts as a "
+                           "repeat when the target's action is within this many bins of the last one on every token "
+                           "(with repeat_r_seq; unset: only an executed action equal to the last one), so tight "
+                           "r_max / r_seq can keep the executed actions on the target's while the skip still "
+                           "fires where the motion repeats loosely."),
+        "repeat_r_seq": _S("repeat_r_seq", "Verify-skip from recent actions: with repeat_r_max, the bound on the "
+                           "cumulative bin distance of that repeat."),
     },
     kinematics.BoundaryConfig: {
         "tau_on": _S("tau_on", f"Boundary: metric above which the drafter mode starts ({_CALIBRATED})."),
