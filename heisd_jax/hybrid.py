@@ -203,7 +203,14 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
             lg, h, x, cache = t.prefill(tp, obs)
             _, _, _, blg, bh, _, kv = zeros(jax.eval_shape(fused, None))  # the block pass's shapes, zero
             return lg, h, x, blg, bh, cache, kv
-        logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(jnp.any(verify_rows), fused, plain, None)
+        # At batch 1 a drafter-mode step prefills without the block. In a batch some row nearly
+        # always verifies, so the block-free prefill would be a second compiled copy of the
+        # largest pass (in every row bucket's copy of the decode) that rarely runs; without it a
+        # row's prompt pass no longer depends on whether another row verifies.
+        if b == 1:
+            logits, hidden, x, blogits, bhidden, cache, block_kv = jax.lax.cond(jnp.any(verify_rows), fused, plain, None)
+        else:
+            logits, hidden, x, blogits, bhidden, cache, block_kv = fused(None)
         passes = jnp.ones((b,), jnp.float32)
     else:
         logits, hidden, x, cache = t.prefill(tp, obs)
