@@ -235,7 +235,7 @@ def verify_candidates(tp, t: target_model.TargetModel, hcfg: HybridConfig, obs: 
     # The accepted prefix (tokens 1..acc) is kept and committed; the target's token acc+1 follows.
     bonus = jnp.take_along_axis(best_target, jnp.minimum(acc, c)[:, None], 1)  # [B, 1]
     bounds = rules.repeat_bounds(hcfg.skip)
-    if bounds is None or hcfg.skip.source != "recent" or hcfg.recent_candidates == 0:
+    if bounds is None or hcfg.recent_candidates == 0:  # (bounds need skip source "recent": SkipConfig)
         last_within = jnp.zeros((b,), bool)
     else:  # the target's action, read from the last action's own chain, within the repeat bounds of it
         last_within = cand_valid[:, 0] & verify_rows & (
