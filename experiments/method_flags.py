@@ -4,7 +4,8 @@ Every setting of a VLA method (`heisd_jax.harness.methods.settings`: the settabl
 default config) becomes one flag of the same name (`--top_k`, `--budget`, ...), shared by the
 methods that have it; its type, valid choices and help come from the setting, and its default
 is None: "the chosen method's own default", which the help line lists per method. Sweep keys
-(`heisd:top_k=4`) are the same names, checked by `methods.check_settings`.
+(`heisd:top_k=4`) are the same names, checked by `methods.check_settings`; `--preset` (sweep key
+`preset`) names a set of them (`methods.PRESETS`).
 """
 
 from __future__ import annotations
@@ -51,6 +52,15 @@ def define(method_names: tuple[str, ...] = methods.DECODING_METHODS,
         else:
             flags.DEFINE_string(name, None, text, flag_values=flag_values)
         names.append(name)
+    presets = {m: methods.PRESETS[m] for m in method_names if methods.PRESETS.get(m)}
+    if presets:
+        choices = sorted({p for named in presets.values() for p in named})
+        text = "; ".join(f"{m}'s {p}: " + ",".join(f"{k}={_fmt(v)}" for k, v in named[p].items())
+                         for m, named in presets.items() for p in named)
+        flags.DEFINE_enum(methods.PRESET, None, choices, f"A named set of settings, which settings given beside it "
+                          f"replace (the 7B scale's measured configuration per batch size, docs/scale.md): {text}.",
+                          flag_values=flag_values)
+        names.append(methods.PRESET)
     return list(names)
 
 
@@ -60,7 +70,8 @@ def given(method: str, flag_values: flags.FlagValues = flags.FLAGS) -> dict:
     names = _DEFINED.get(id(flag_values), [])
     values = {name: flag_values[name].value for name in names if flag_values[name].value is not None}
     try:
-        valid = set(methods.settings(method)) & set(names)
+        valid = (set(methods.settings(method)) | ({methods.PRESET} if methods.PRESETS.get(method) else set())) \
+            & set(names)
         extra = [name for name in values if name not in valid]
         if extra:
             raise ValueError(f"--method={method} takes none of --{', --'.join(extra)}")

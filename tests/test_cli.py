@@ -110,7 +110,7 @@ def test_method_flags_are_the_settings_fields():
     fv = flags.FlagValues()
     names = method_flags.define(flag_values=fv)
     fields = {key for name in methods.DECODING_METHODS for key in methods.settings(name)}
-    assert set(names) == fields and len(names) == len(fields)
+    assert set(names) == fields | {methods.PRESET} and len(names) == len(fields) + 1
     assert fv["budget"].parser.enum_values == list(methods.settings("heisd")["budget"].choices)
     assert "heisd auto" in fv["budget"].help and "retrieval fixed" in fv["budget"].help  # each method's default
     fv(["prog", "--k_skip=2", "--skip=false", "--budget_trees=4x2x8"])
@@ -121,6 +121,11 @@ def test_method_flags_are_the_settings_fields():
     fv(["prog", "--budget=fixed", "--budget_margin=0.2"])
     with pytest.raises(app.UsageError, match="budget_margin is only used with budget=auto"):
         method_flags.given("heisd", fv)
+    fv.unparse_flags()
+    fv(["prog", "--preset=batch16", "--row_buckets=8"])  # a preset's settings, the given one replacing its own
+    assert method_flags.given("heisd", fv) == {**methods.PRESETS["heisd"]["batch16"], "row_buckets": 8}
+    with pytest.raises(app.UsageError, match="--method=ar takes none of --row_buckets, --preset"):
+        method_flags.given("ar", fv)
     assert method_flags.given("ar", flags.FlagValues()) == {}
 
 

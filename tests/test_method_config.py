@@ -93,6 +93,28 @@ def test_bad_keys_and_values_are_refused_by_name():
         methods.check_settings("drafter", {"skip": True})
 
 
+def test_a_preset_stands_for_its_settings_and_given_ones_replace_its_own():
+    b16 = methods.config("heisd", {"preset": "batch16"}).decode
+    assert (b16.budget.mode, b16.continuation, b16.n_candidates, b16.recent_candidates, b16.row_buckets) == \
+        ("fixed", "ar", 0, 1, 4)
+    assert (b16.seq.r_max, b16.seq.r_seq, b16.skip.repeat_r_max, b16.skip.repeat_r_seq, b16.skip.enabled) == \
+        (2, 6, 9, 24, True)
+    b1 = methods.config("heisd", {"preset": "batch1"}).decode
+    assert (b1.budget.mode, b1.spec.top_k, b1.spec.depth, b1.spec.total_tokens) == ("fixed", 4, 2, 8)
+    # Given settings win; the checked settings are the preset's, so a result records what ran.
+    (name, given), = methods.parse_method_list("heisd:preset=batch16,row_buckets=8")
+    assert given == {**methods.PRESETS["heisd"]["batch16"], "row_buckets": 8}
+    assert methods.check_settings(name, given) == given
+    assert methods.config(name, given).decode == dataclasses.replace(b16, row_buckets=8)
+    with pytest.raises(ValueError, match="method 'heisd': unknown preset 'batch8'; valid: batch1, batch16"):
+        methods.check_settings("heisd", {"preset": "batch8"})
+    with pytest.raises(ValueError, match="method 'ar': unknown preset 'batch16'; valid: none"):
+        methods.parse_method_list("ar:preset=batch16")
+    for name, named in methods.PRESETS.items():  # every preset is settings its method takes
+        for preset, settings in named.items():
+            assert methods.check_settings(name, {"preset": preset}) == settings
+
+
 def test_every_declared_setting_is_some_methods():
     keys = {k for name in methods.METHODS for k in methods.settings(name)}
     declared = {s.key for table in methods.SETTINGS.values() for s in table.values()}

@@ -268,6 +268,36 @@ _ONLY_WITH_WHY = {"continuation": " (budget=auto chooses per step between AR aft
                                   "ar+retrieval, and the drafter trees)"}
 
 
+# Named sets of settings, per method: the sweep key and flag `preset` (`heisd:preset=batch16`,
+# `--preset=batch16`) stands for its settings, and settings given beside it replace its own.
+# Each is the configuration docs/scale.md measured fastest at the 7B scale at that batch size
+# with every suite's success within 2 points of AR's; the default (`budget=auto`) is the
+# configuration for a target of unknown costs. A result records the settings, not the name.
+PRESET = "preset"
+PRESETS: dict[str, dict[str, dict]] = {
+    "heisd": {
+        # One fixed 4x2x8 drafter tree after the verified candidates: no chooser to run.
+        "batch1": {"budget": "fixed", "top_k": 4, "depth": 2, "total_tokens": 8},
+        # Verify-skipped rows out of the batch (row_buckets), one recent candidate in the
+        # prefill, single-token passes after it, and a tight acceptance that keeps the executed
+        # actions on the target's, with loose repeat bounds so verify-skip still fires.
+        "batch16": {"budget": "fixed", "continuation": "ar", "n_candidates": 0, "recent_candidates": 1,
+                    "r_max": 2, "r_seq": 6, "repeat_r_max": 9, "repeat_r_seq": 24, "row_buckets": 4},
+    },
+}
+
+
+def _with_preset(name: str, given: dict) -> dict:
+    """`given` with its `preset` replaced by that preset's settings (the given ones win)."""
+    if PRESET not in given:
+        return given
+    rest = {k: v for k, v in given.items() if k != PRESET}
+    named = PRESETS.get(name, {})
+    if given[PRESET] not in named:
+        raise ValueError(f"method {name!r}: unknown preset {given[PRESET]!r}; valid: {', '.join(named) or 'none'}")
+    return {**named[given[PRESET]], **rest}
+
+
 def _bind(cfg, path: tuple[str, ...] = ()):
     """The settings of config `cfg` (a tree of dataclasses), key -> bound `Setting`, in field order."""
     out: dict[str, Setting] = {}
@@ -387,8 +417,10 @@ def _config(name: str, given: dict, calibration: dict | None):
 
 def check_settings(name: str, given: dict) -> dict:
     """A method's given settings, typed and validated against its settings (a clear error
-    naming the valid keys and values), before anything loads or compiles."""
+    naming the valid keys and values), before anything loads or compiles; a `preset` among
+    them is replaced by its settings (`PRESETS`)."""
     bound = settings(name)
+    given = _with_preset(name, given)
     unknown = sorted(set(given) - set(bound))
     if unknown:
         raise ValueError(f"method {name!r}: unknown settings {unknown}; valid: {', '.join(bound) or 'none'}")
@@ -494,8 +526,8 @@ def _build_hybrid(name: str):
                                  f"(rows per device), got {batch_size}")
             if not hcfg.budget.drafts_at(batch_size):
                 log(f"{name}: batch {batch_size} is above budget_max_batch {hcfg.budget.max_batch}: decoding with "
-                    f"plain AR (where a prefill costs in proportion to its rows, as at 7B, budget=fixed,"
-                    f"continuation=ar,row_buckets=8 takes verify-skipped rows out of it: docs/scale.md)")
+                    f"plain AR (where a prefill costs in proportion to its rows, as at 7B, preset=batch16 takes "
+                    f"verify-skipped rows out of it: docs/scale.md)")
                 return _as_ar(name, params, cfg, tok, table)
             table = cost_model.load_or_calibrate(all_params, cfg, hcfg, batch_size, cost_cache, log,
                                                   measure=calibrate_costs)
